@@ -1,0 +1,1 @@
+"""Device-facing interfaces and adapters. Never imports planners/."""

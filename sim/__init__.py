@@ -1,0 +1,1 @@
+"""The pybullet twin: scenes, the simulated Panda and D435. Never imports planners/."""
