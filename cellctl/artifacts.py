@@ -1,0 +1,49 @@
+"""Run folders: result.json plus the clouds as PLY, written so a crash mid-way keeps what exists."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from planners.clouds import Cloud
+
+
+def new_run_dir(root: str | Path, scene: str, planner: str) -> Path:
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    safe_scene = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in Path(scene).stem)
+    base = Path(root) / f"{stamp}-{safe_scene}-{planner}"
+    path, n = base, 1
+    while path.exists():
+        n += 1
+        path = base.with_name(f"{base.name}-{n}")
+    path.mkdir(parents=True)
+    return path
+
+
+def write_json(path: Path, data: dict) -> None:
+    """Atomic: write a sibling temp file, then rename over."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, default=_default))
+    os.replace(tmp, path)
+
+
+def _default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+def write_ply(path: Path, cloud: Cloud) -> None:
+    import open3d as o3d  # heavy import, only where clouds are written
+
+    pc = o3d.geometry.PointCloud()
+    pc.points = o3d.utility.Vector3dVector(cloud.xyz.astype(np.float64))
+    pc.colors = o3d.utility.Vector3dVector(cloud.rgb.astype(np.float64) / 255.0)
+    if not o3d.io.write_point_cloud(str(path), pc, write_ascii=False):
+        raise OSError(f"could not write {path}")

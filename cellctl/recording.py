@@ -1,0 +1,76 @@
+"""Rerun recording of a scan: clouds, camera frusta, frontier, candidates, chosen views, drawing,
+all on a `step` timeline in the robot base frame ("world")."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+_PAINT = np.array([230, 30, 30], dtype=np.uint8)
+
+
+class ScanRecorder:
+    def __init__(self, path: str | Path, name: str, connect: str | None = None):
+        self.rec = rr.RecordingStream("scrapcell", recording_id=None)
+        self.rec.save(str(path))
+        if connect:
+            self.rec.connect_grpc(connect)
+        self.rec.send_recording_name(name)
+        self.rec.send_blueprint(rrb.Blueprint(
+            rrb.Horizontal(
+                rrb.Spatial3DView(origin="world", name="cell"),
+                rrb.Spatial2DView(origin="world/camera/image", name="camera"),
+                column_shares=[3, 1],
+            ),
+            collapse_panels=True,
+        ))
+        self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self._path: list[np.ndarray] = []
+
+    def log_scene(self, vertices: np.ndarray, faces: np.ndarray, gt_points: np.ndarray) -> None:
+        """Ground truth for context (the twin knows it; the planner never sees it)."""
+        self.rec.log("world/truth/object", rr.Mesh3D(vertex_positions=vertices, triangle_indices=faces,
+                                                       albedo_factor=[150, 150, 150, 90]), static=True)
+        self.rec.log("world/truth/drawing", rr.Points3D(gt_points, colors=[255, 200, 0], radii=0.001), static=True)
+
+    def log_view(self, step: int, T_base_cam: np.ndarray, K: np.ndarray, size: tuple[int, int],
+                 color: np.ndarray, depth: np.ndarray, cloud_xyz: np.ndarray, cloud_rgb: np.ndarray) -> None:
+        rec = self.rec
+        rec.set_time("step", sequence=step)
+        rec.log("world/camera", rr.Transform3D(translation=T_base_cam[:3, 3], mat3x3=T_base_cam[:3, :3]))
+        rec.log("world/camera/image", rr.Pinhole(image_from_camera=K, resolution=list(size),
+                                                 camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.15))
+        rec.log("world/camera/image/rgb", rr.Image(color))
+        rec.log("world/camera/image/depth", rr.DepthImage(np.nan_to_num(depth, nan=0.0), meter=1.0))
+        rec.log(f"world/captures/{step}", rr.Points3D(cloud_xyz, colors=cloud_rgb, radii=0.0015))
+        self._path.append(T_base_cam[:3, 3].copy())
+        rec.log("world/viewpoints", rr.Points3D(np.array(self._path), colors=[40, 160, 255], radii=0.01,
+                                                labels=[str(i) for i in range(len(self._path))]))
+        if len(self._path) > 1:
+            rec.log("world/view_path", rr.LineStrips3D([np.array(self._path)], colors=[220, 0, 220], radii=0.003))
+
+    def log_plan(self, step: int, frontier: np.ndarray, voxel: float, candidates: np.ndarray,
+                 quality: np.ndarray, target: np.ndarray | None, drawing_xyz: np.ndarray) -> None:
+        rec = self.rec
+        rec.set_time("step", sequence=step)
+        rec.log("world/drawing", rr.Points3D(drawing_xyz, colors=_PAINT, radii=0.002))
+        if len(frontier):
+            rec.log("world/frontier", rr.Boxes3D(centers=frontier, half_sizes=np.full(3, voxel / 2),
+                                                 colors=[0, 220, 120]))
+        else:
+            rec.log("world/frontier", rr.Clear(recursive=False))
+        if len(candidates):
+            q = (quality - quality.min()) / max(float(np.ptp(quality)), 1e-12)
+            colors = np.stack([255 * (1 - q), 255 * q, 60 * np.ones_like(q)], axis=1).astype(np.uint8)
+            rec.log("world/candidates", rr.Points3D(candidates[:, :3, 3], colors=colors, radii=0.006))
+        else:
+            rec.log("world/candidates", rr.Clear(recursive=False))
+        if target is not None:
+            rec.log("world/target", rr.Points3D([target], colors=[255, 255, 0], radii=0.012))
+
+    def close(self) -> None:
+        self.rec.flush()
+        self.rec.disconnect()

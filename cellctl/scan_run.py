@@ -1,0 +1,48 @@
+"""A scan in the twin from the command line: build the twin, run the job, write the run folder."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from cellctl.artifacts import new_run_dir, write_json, write_ply
+from cellctl.config import CellConfig
+from cellctl.recording import ScanRecorder
+from cellctl.scan import ScanJob, ScanResult, StepRecord
+from planners.config import load_planners_config
+from sim.scenes import load_scene
+from sim.twin import Twin
+
+
+def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, seed: int | None = None,
+                     noise: bool = True, out: str | None = None, max_steps: int | None = None,
+                     progress: bool = True) -> tuple[ScanResult, Path]:
+    pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
+    if max_steps is not None:
+        pcfg = pcfg.model_copy(update={"nbv": pcfg.nbv.model_copy(update={"max_steps": max_steps})})
+    scene = load_scene(scene_ref)
+    cam_cfg = cfg.twin.camera.model_copy(update={"noise": noise, **({"seed": seed} if seed is not None else {})})
+    twin_cfg = cfg.twin.model_copy(update={"camera": cam_cfg})
+    run_dir = new_run_dir(out or cfg.runs_dir, scene.name, planner)
+    recorder = ScanRecorder(run_dir / "scan.rrd", f"{scene.name}-{planner}", cfg.rerun_connect)
+    recorder.log_scene(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points)
+
+    def report(rec: StepRecord) -> None:
+        if progress:
+            print(f"step {rec.step}: {rec.points} pts, drawing {rec.drawing_points}, frontier {rec.frontier_cells}, "
+                  f"{rec.candidates} candidates, planning {rec.planning_s:.3f} s, motion {rec.motion_s:.2f} s",
+                  file=sys.stderr, flush=True)
+
+    with Twin(scene, twin_cfg) as twin:
+        job = ScanJob(twin.arm, twin.camera, planner, pcfg, cfg.motion, recorder, report)
+        twin.arm.reset(twin_cfg.home_q)
+        candidates = scene.initial_view_candidates
+        result = job.run(scene.name, candidates, scene.gt_points)
+    try:
+        write_ply(run_dir / "drawing.ply", job.drawing)
+        write_ply(run_dir / "surface.ply", job.surface)
+    finally:
+        write_json(run_dir / "result.json", {"schema_version": 1, "cell_id": cfg.cell_id,
+                                             "scene_ref": scene_ref, **result.to_dict()})
+        recorder.close()
+    return result, run_dir

@@ -1,0 +1,104 @@
+"""Cloud processing of the paper's §IV-B: back-projection, base-frame transform, voxel-deduplicated
+accumulation (C_total) and the colour filter ξ that yields the drawing cloud (D_total)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class Cloud:
+    """Points (N,3) float32 with colours (N,3) uint8; never Python lists."""
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+
+    @staticmethod
+    def empty() -> "Cloud":
+        return Cloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8))
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+    def select(self, mask: np.ndarray) -> "Cloud":
+        return Cloud(self.xyz[mask], self.rgb[mask])
+
+
+def depth_to_camera_points(depth: np.ndarray, K: np.ndarray, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Back-project valid depth pixels into the optical frame. Returns (points (N,3) float32,
+    flat pixel indices (N,) into the full image). Non-finite and non-positive depths are no return."""
+    if depth.ndim != 2:
+        raise ValueError(f"depth must be a 2-D image, got shape {depth.shape}")
+    h, w = depth.shape
+    vs, us = np.mgrid[0:h:stride, 0:w:stride]
+    z = depth[vs, us]
+    ok = np.isfinite(z) & (z > 0)
+    z = z[ok].astype(np.float32)
+    u = us[ok].astype(np.float32)
+    v = vs[ok].astype(np.float32)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    pts = np.stack([(u - cx) * z / fx, (v - cy) * z / fy, z], axis=1).astype(np.float32)
+    return pts, (vs[ok] * w + us[ok]).astype(np.int64)
+
+
+def transform_points(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to (N,3) points, keeping float32."""
+    return (pts @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)).astype(np.float32)
+
+
+def frame_to_base_cloud(color: np.ndarray, depth: np.ndarray, K: np.ndarray, T_base_cam: np.ndarray,
+                        stride: int = 1) -> Cloud:
+    """The paper's ^bT_k ^cC_k: one frame's coloured cloud in the base frame."""
+    if not np.all(np.isfinite(T_base_cam)):
+        raise ValueError("camera pose contains NaN/inf")
+    pts, idx = depth_to_camera_points(depth, K, stride)
+    rgb = color.reshape(-1, 3)[idx]
+    return Cloud(transform_points(T_base_cam, pts), rgb)
+
+
+def voxel_keys(xyz: np.ndarray, voxel: float) -> np.ndarray:
+    """Integer voxel coordinates packed into one int64 key (21 bits per axis, ±10 km at 1 mm)."""
+    ijk = np.floor(xyz / voxel).astype(np.int64) + (1 << 20)
+    return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+
+
+def voxel_dedup(cloud: Cloud, voxel: float) -> Cloud:
+    """Keep the first point per voxel so repeated views do not grow the cloud without bound."""
+    if len(cloud) == 0:
+        return cloud
+    _, first = np.unique(voxel_keys(cloud.xyz, voxel), return_index=True)
+    return cloud.select(np.sort(first))
+
+
+def concatenate(total: Cloud, new: Cloud, voxel: float) -> Cloud:
+    """Eq. (1): C_total,k = C_total,k-1 ∪ C_k, voxel de-duplicated (old points win)."""
+    merged = Cloud(np.concatenate([total.xyz, new.xyz]), np.concatenate([total.rgb, new.rgb]))
+    return voxel_dedup(merged, voxel)
+
+
+def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
+    """uint8 RGB (N,3) -> HSV with H in degrees [0,360), S and V in [0,1]."""
+    c = rgb.astype(np.float32) / 255.0
+    r, g, b = c[:, 0], c[:, 1], c[:, 2]
+    mx = c.max(axis=1)
+    mn = c.min(axis=1)
+    d = mx - mn
+    h = np.zeros_like(mx)
+    nz = d > 1e-6
+    rm = nz & (mx == r)
+    gm = nz & (mx == g) & ~rm
+    bm = nz & ~rm & ~gm
+    h[rm] = (60.0 * ((g[rm] - b[rm]) / d[rm])) % 360.0
+    h[gm] = 60.0 * ((b[gm] - r[gm]) / d[gm]) + 120.0
+    h[bm] = 60.0 * ((r[bm] - g[bm]) / d[bm]) + 240.0
+    s = np.where(mx > 1e-6, d / np.maximum(mx, 1e-6), 0.0)
+    return np.stack([h, s, mx], axis=1)
+
+
+def color_mask(rgb: np.ndarray, hue_center_deg: float, hue_halfwidth_deg: float, s_min: float, v_min: float) -> np.ndarray:
+    """The filter ξ: an admissible HSV range (hue wraps around 360)."""
+    hsv = rgb_to_hsv(rgb)
+    dh = np.abs((hsv[:, 0] - hue_center_deg + 180.0) % 360.0 - 180.0)
+    return (dh <= hue_halfwidth_deg) & (hsv[:, 1] >= s_min) & (hsv[:, 2] >= v_min)

@@ -1,0 +1,125 @@
+"""Planner parameters, validated. Units are in the field names; the paper's values where it has them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class ColorFilter(_Strict):
+    """ξ of §IV-B: the admissible HSV range of the paint (hue wraps at 360 degrees)."""
+
+    hue_center_deg: float = Field(0.0, ge=0, lt=360)
+    hue_halfwidth_deg: float = Field(20.0, gt=0, le=180)
+    s_min: float = Field(0.5, ge=0, le=1)
+    v_min: float = Field(0.15, ge=0, le=1)
+
+
+class GridConfig(_Strict):
+    """The probabilistic occupancy grid (log-odds per cell) over a bounded workspace."""
+
+    lo_m: tuple[float, float, float] = (0.0, -0.6, 0.0)
+    hi_m: tuple[float, float, float] = (1.2, 0.6, 1.0)
+    voxel_m: float = Field(0.01, ge=0.002, le=0.1)
+    l_hit: float = Field(0.85, gt=0, le=5)
+    l_miss: float = Field(-0.4, lt=0, ge=-5)
+    l_min: float = Field(-2.0, lt=0, ge=-20)
+    l_max: float = Field(3.5, gt=0, le=20)
+    integrate_stride_px: int = Field(2, ge=1, le=16)
+    surface_voxel_m: float = Field(0.002, gt=0, le=0.02)  # de-duplication of C_total / D_total
+
+    @model_validator(mode="after")
+    def _bounds(self) -> "GridConfig":
+        size = [h - lo for lo, h in zip(self.lo_m, self.hi_m)]
+        if min(size) <= 0:
+            raise ValueError(f"hi_m must exceed lo_m on every axis, got lo_m={self.lo_m} hi_m={self.hi_m}")
+        cells = 1
+        for s in size:
+            cells *= int(round(s / self.voxel_m))
+        if cells > 64_000_000:
+            raise ValueError(f"grid would have {cells} cells (> 64M): enlarge voxel_m or shrink the workspace")
+        return self
+
+
+class NBVConfig(_Strict):
+    """Parameters of the quality metric Q (eq. 4-8) and stop rule (eq. 9), shared by the NBV planners."""
+
+    lam: float = Field(0.5, ge=0, lt=1, description="λ of eq. 4 (paper: 1/2)")
+    alpha_phi: float = Field(5.0, gt=0, description="α_φ of eq. 7 (paper: 5), per phi_length_m squared")
+    phi_length_m: float = Field(0.05, gt=0, le=1.0,
+                                description="unit in which dist_F of eq. 7 is measured (the paper leaves it unstated)")
+    delta_q: float = Field(0.0, description="δ_Q of eq. 9 on the normalized quality")
+    min_gain: float = Field(0.5, ge=0, description="stop when the best raw gain (entropy, nats) falls below this")
+    search_radius_m: float = Field(0.42, gt=0.05, le=1.5, description="outer radius of the candidate sphere")
+    min_standoff_m: float = Field(0.25, ge=0.1, le=1.0, description="inner radius: the D435 needs distance")
+    candidate_spacing_m: float = Field(0.04, ge=0.005, le=0.3)
+    max_view_angle_deg: float = Field(70.0, gt=0, le=90, description="candidates within this angle of the surface normal")
+    min_camera_z_m: float = Field(0.12, description="candidates below this height are not generated")
+    clearance_m: float = Field(0.06, ge=0, le=0.5, description="candidates this close to occupied cells are dropped")
+    unknown_visibility: float = Field(0.5, gt=0, le=1,
+                                      description="P[o=0] of an unknown cell in eq. 8 (paper: 0.5)")
+    rays_w: int = Field(48, ge=4, le=400)
+    rays_h: int = Field(28, ge=3, le=300)
+    max_range_m: float = Field(0.8, gt=0.1, le=5)
+    min_frontier_cluster: int = Field(3, ge=1, le=1000)
+    max_steps: int = Field(12, ge=1, le=200)
+    max_target_visits: int = Field(2, ge=1, le=20, description="give up a frontier cluster after this many views at it")
+    ik_candidates: int = Field(40, ge=1, le=10_000, description="ranked candidates the runner tries to reach")
+
+    @model_validator(mode="after")
+    def _radii(self) -> "NBVConfig":
+        if self.min_standoff_m >= self.search_radius_m:
+            raise ValueError(f"min_standoff_m ({self.min_standoff_m}) must be below search_radius_m ({self.search_radius_m})")
+        return self
+
+
+class PlannersConfig(_Strict):
+    grid: GridConfig = GridConfig()
+    color: ColorFilter = ColorFilter()
+    nbv: NBVConfig = NBVConfig()
+    coverage_voxel_m: float = Field(0.01, gt=0.001, le=0.1)
+
+
+class ConfigError(ValueError):
+    """A config file is unreadable or invalid; the message names the file and the field."""
+
+
+def format_validation_error(source: str, err: ValidationError) -> str:
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        lines.append(f"{source}: {loc}: {e['msg']}")
+    return "\n".join(lines)
+
+
+def load_yaml_model(path: str | Path, model: type[BaseModel]) -> BaseModel:
+    """Load and validate a YAML file; every failure is a ConfigError naming the file and field."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read config: {e.strerror}") from None
+    try:
+        data = yaml.safe_load(text) or {}
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML: {e}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: (top level): expected a mapping, got {type(data).__name__}")
+    try:
+        return model.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError(format_validation_error(str(path), e)) from None
+
+
+def load_planners_config(path: str | Path | None = None) -> PlannersConfig:
+    if path is None:
+        from configs import CONFIG_DIR  # configs/ is data only; no device code behind it
+
+        path = CONFIG_DIR / "planners.yaml"
+    return load_yaml_model(path, PlannersConfig)  # type: ignore[return-value]

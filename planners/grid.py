@@ -1,0 +1,115 @@
+"""The probabilistic occupancy grid of §V-B: log-odds per cell over a bounded workspace, unknown
+cells at exactly 0.5, free space carved along each pixel ray, and the drawing's frontier."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from planners import raycast
+from planners.config import GridConfig
+
+_N26 = np.ones((3, 3, 3), dtype=bool)
+_N6 = ndimage.generate_binary_structure(3, 1)
+
+
+class OccupancyGrid:
+    def __init__(self, cfg: GridConfig):
+        self.cfg = cfg
+        self.voxel = float(cfg.voxel_m)
+        self.lo = np.asarray(cfg.lo_m, dtype=np.float64)
+        hi = np.asarray(cfg.hi_m, dtype=np.float64)
+        self.shape = tuple(int(round(s)) for s in (hi - self.lo) / self.voxel)
+        self.hi = self.lo + np.asarray(self.shape) * self.voxel
+        self.logodds = np.zeros(self.shape, dtype=np.float32)
+        self.drawing = np.zeros(self.shape, dtype=bool)
+        self._marks = np.zeros(int(np.prod(self.shape)), dtype=np.int8)
+
+    # --- geometry -----------------------------------------------------------------------------
+    def index_of(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cell indices (N,3) of points and a mask of those inside the grid."""
+        ijk = np.floor((np.asarray(xyz, dtype=np.float64) - self.lo) / self.voxel).astype(np.int64)
+        inside = np.all((ijk >= 0) & (ijk < np.asarray(self.shape)), axis=1)
+        return ijk, inside
+
+    def centers(self, ijk: np.ndarray) -> np.ndarray:
+        return self.lo + (np.asarray(ijk, dtype=np.float64) + 0.5) * self.voxel
+
+    # --- updates ------------------------------------------------------------------------------
+    def integrate(self, origin: np.ndarray, points: np.ndarray, truncation_voxels: float = 1.0) -> None:
+        """One scan: every touched cell is updated once (hit wins over free), log-odds clamped."""
+        if len(points) == 0:
+            return
+        marks = self._marks
+        marks[:] = 0
+        raycast.mark_scan(np.asarray(origin, dtype=np.float64), np.ascontiguousarray(points, dtype=np.float64),
+                          self.lo, self.voxel, np.asarray(self.shape, dtype=np.int64),
+                          float(truncation_voxels), marks)
+        flat = self.logodds.reshape(-1)
+        free = marks == raycast.FREE
+        hit = marks == raycast.HIT
+        flat[free] = np.maximum(flat[free] + self.cfg.l_miss, self.cfg.l_min)
+        flat[hit] = np.minimum(flat[hit] + self.cfg.l_hit, self.cfg.l_max)
+
+    def set_drawing(self, drawing_xyz: np.ndarray) -> None:
+        """Label the cells that hold drawing points (recomputed from D_total every step)."""
+        self.drawing[:] = False
+        if len(drawing_xyz):
+            ijk, inside = self.index_of(drawing_xyz)
+            ijk = ijk[inside]
+            self.drawing[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+
+    # --- states -------------------------------------------------------------------------------
+    @property
+    def occupied(self) -> np.ndarray:
+        return self.logodds > 0
+
+    @property
+    def free(self) -> np.ndarray:
+        return self.logodds < 0
+
+    @property
+    def unknown(self) -> np.ndarray:
+        return self.logodds == 0
+
+    def probability(self) -> np.ndarray:
+        return 1.0 / (1.0 + np.exp(-self.logodds))
+
+    def frontier(self) -> np.ndarray:
+        """Cells with an unknown neighbour and a drawing neighbour (§V-B). Only unknown cells that
+        touch observed free space count: the inside of a solid object is unknown forever and
+        would otherwise make every drawing cell a frontier."""
+        unknown = self.unknown
+        open_unknown = unknown & ndimage.binary_dilation(self.free, structure=_N6)
+        near_unknown = ndimage.binary_dilation(open_unknown, structure=_N26)
+        near_drawing = ndimage.binary_dilation(self.drawing, structure=_N26)
+        return near_unknown & near_drawing & ~unknown
+
+    def expected_entropy_decrease(self) -> np.ndarray:
+        """h(g) of eq. 6 for one more measurement: H(p) - E[H(p')], the expectation over a hit
+        (probability p) and a miss, with the sensor's log-odds increments. Nats."""
+        L = self.logodds.astype(np.float64)
+
+        def H(l):
+            p = 1.0 / (1.0 + np.exp(-l))
+            p = np.clip(p, 1e-12, 1 - 1e-12)
+            return -(p * np.log(p) + (1 - p) * np.log(1 - p))
+
+        p = 1.0 / (1.0 + np.exp(-L))
+        l_hit = np.minimum(L + self.cfg.l_hit, self.cfg.l_max)
+        l_miss = np.maximum(L + self.cfg.l_miss, self.cfg.l_min)
+        return (H(L) - (p * H(l_hit) + (1 - p) * H(l_miss))).astype(np.float32)
+
+
+def frontier_clusters(frontier: np.ndarray, min_size: int) -> tuple[np.ndarray, int]:
+    """Connected components (26-neighbourhood) of the frontier, small ones dropped as noise.
+    Returns (labels with 0 = none, number of clusters) relabelled 1..n."""
+    labels, n = ndimage.label(frontier, structure=_N26)
+    if n == 0:
+        return labels, 0
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    keep = sizes >= min_size
+    keep[0] = False
+    remap = np.zeros(n + 1, dtype=np.int32)
+    remap[keep] = np.arange(1, int(keep.sum()) + 1)
+    return remap[labels], int(keep.sum())

@@ -1,0 +1,266 @@
+"""Forward kinematics and camera Jacobian of a serial arm, from its URDF, with Pinocchio.
+
+The model is reduced to the listed arm joints (every other joint, e.g. the Panda's fingers, is
+locked at its neutral value) and an operational frame ``camera`` is attached to the flange link
+with the hand-eye extrinsic ``T_flange_cam``. Poses are 4x4 float64 ``T_base_<frame>`` where
+"base" is the URDF root link (pinocchio's universe frame).
+
+Not thread-safe: one ``Kinematics`` owns one ``pinocchio.Data`` scratch buffer; give each thread
+its own instance (construction takes a few ms).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import pinocchio as pin
+
+CAM_FRAME_NAME = "scrapcell_camera_optical"
+
+_AXES = {"X": np.array([1.0, 0.0, 0.0]), "Y": np.array([0.0, 1.0, 0.0]), "Z": np.array([0.0, 0.0, 1.0])}
+
+
+def _as_pose(T: np.ndarray, name: str) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"{name} must be a finite 4x4 homogeneous transform, got shape {T.shape}")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise ValueError(f"{name} is not a rigid transform (rotation not orthonormal or bad last row)")
+    return T
+
+
+class Kinematics:
+    """Kinematics of the arm joints ``joint_names`` up to ``flange_link`` and the camera on it.
+
+    Args:
+        urdf_path: URDF file (meshes are not loaded).
+        joint_names: the actuated 1-DOF joints, in the order of the ``q`` vectors used everywhere
+            else (the arm's driver order). All other joints of the URDF are locked at neutral.
+        flange_link: URDF link the camera is mounted on (e.g. ``"panda_hand"``).
+        T_flange_cam: 4x4 hand-eye extrinsic, camera optical frame -> flange link frame.
+        lower, upper: optional position limits (7,) to intersect with the URDF's, e.g. the
+            Panda's published controller limits (see ``limits.py``).
+
+    Raises:
+        ValueError: unknown joint or link name, a joint that is not 1-DOF, bad extrinsic/limits.
+    """
+
+    def __init__(
+        self,
+        urdf_path: str,
+        joint_names: Sequence[str],
+        flange_link: str,
+        T_flange_cam: np.ndarray,
+        *,
+        lower: np.ndarray | None = None,
+        upper: np.ndarray | None = None,
+    ) -> None:
+        self.urdf_path = str(urdf_path)
+        self.joint_names = tuple(joint_names)
+        self.flange_link = flange_link
+        self.T_flange_cam = _as_pose(T_flange_cam, "T_flange_cam").copy()
+
+        full = pin.buildModelFromUrdf(self.urdf_path)
+        full_names = list(full.names)
+        missing = [n for n in self.joint_names if n not in full_names]
+        if missing:
+            raise ValueError(f"joints {missing} not in URDF {self.urdf_path}; it has {full_names[1:]}")
+        if len(set(self.joint_names)) != len(self.joint_names):
+            raise ValueError(f"duplicate joint names in {self.joint_names}")
+        lock = [full.getJointId(n) for n in full_names[1:] if n not in self.joint_names]
+        model = pin.buildReducedModel(full, lock, pin.neutral(full)) if lock else full
+
+        if not model.existFrame(flange_link):
+            links = [f.name for f in model.frames if f.type == pin.FrameType.BODY]
+            raise ValueError(f"flange link {flange_link!r} not in URDF {self.urdf_path}; links: {links}")
+        flange_id = model.getFrameId(flange_link)
+        flange = model.frames[flange_id]
+
+        self.dof = len(self.joint_names)
+        if model.nq != self.dof or model.nv != self.dof:
+            raise ValueError(f"reduced model has nq={model.nq}, nv={model.nv}; only 1-DOF joints are supported")
+        jids = [model.getJointId(n) for n in self.joint_names]
+        for n, j in zip(self.joint_names, jids):
+            if model.joints[j].nq != 1:
+                raise ValueError(f"joint {n!r} is {model.joints[j].shortname()}, only 1-DOF joints are supported")
+        # q (driver order) -> pinocchio q order; identity for the Panda.
+        self._idx = np.array([model.joints[j].idx_q for j in jids], dtype=np.intp)
+        self._identity_order = bool(np.array_equal(self._idx, np.arange(self.dof)))
+
+        cam_placement = flange.placement * pin.SE3(self.T_flange_cam[:3, :3].copy(), self.T_flange_cam[:3, 3].copy())
+        self._cam_id = model.addFrame(
+            pin.Frame(CAM_FRAME_NAME, flange.parentJoint, flange_id, cam_placement, pin.FrameType.OP_FRAME)
+        )
+        self._flange_id = flange_id
+        self.model = model
+        self.data = model.createData()
+        self._frame_ids = {"cam": self._cam_id, "flange": self._flange_id}
+
+        lo = np.empty(self.dof)
+        hi = np.empty(self.dof)
+        lo[:] = model.lowerPositionLimit[self._idx]
+        hi[:] = model.upperPositionLimit[self._idx]
+        if lower is not None:
+            lo = np.maximum(lo, self._vec(lower, "lower"))
+        if upper is not None:
+            hi = np.minimum(hi, self._vec(upper, "upper"))
+        if not np.all(lo < hi):
+            raise ValueError(f"empty joint range: lower={lo}, upper={hi}")
+        self.lower = lo
+        self.upper = hi
+        self.lower.setflags(write=False)
+        self.upper.setflags(write=False)
+
+        self._build_chain()
+
+    # ------------------------------------------------------------------ helpers
+
+    def _vec(self, q: np.ndarray, name: str = "q") -> np.ndarray:
+        q = np.asarray(q, dtype=np.float64)
+        if q.shape != (self.dof,):
+            raise ValueError(f"{name} must have shape ({self.dof},), got {q.shape}")
+        if not np.all(np.isfinite(q)):
+            raise ValueError(f"{name} contains NaN or inf: {q}")
+        return q
+
+    def _to_pin(self, q: np.ndarray) -> np.ndarray:
+        if self._identity_order:
+            return q
+        qp = np.empty(self.dof)
+        qp[self._idx] = q
+        return qp
+
+    def _frame_id(self, frame: str) -> int:
+        try:
+            return self._frame_ids[frame]
+        except KeyError:
+            raise ValueError(f"frame must be 'cam' or 'flange', got {frame!r}") from None
+
+    def within_limits(self, q: np.ndarray, margin: float = 0.0) -> bool:
+        """True if lower + margin <= q <= upper - margin for every joint."""
+        q = self._vec(q)
+        return bool(np.all(q >= self.lower + margin) and np.all(q <= self.upper - margin))
+
+    # ------------------------------------------------------------------ single configuration
+
+    def fk(self, q: np.ndarray, frame: str = "cam") -> np.ndarray:
+        """T_base_<frame> (4x4) at configuration q; frame is ``"cam"`` or ``"flange"``."""
+        fid = self._frame_id(frame)
+        q = self._vec(q)
+        pin.framesForwardKinematics(self.model, self.data, self._to_pin(q))
+        return self.data.oMf[fid].homogeneous.copy()
+
+    def jacobian_cam(self, q: np.ndarray) -> np.ndarray:
+        """6x7 Jacobian of the camera frame: rows [v; w] of the camera origin, world-aligned axes."""
+        return self.pose_and_jacobian(q)[1]
+
+    def pose_and_jacobian(self, q: np.ndarray, frame: str = "cam") -> tuple[np.ndarray, np.ndarray]:
+        """(T_base_<frame>, J) in one pass; J is 6xdof, LOCAL_WORLD_ALIGNED, columns in q order."""
+        fid = self._frame_id(frame)
+        return self._pose_jac(self._vec(q), fid)
+
+    def _pose_jac(self, q: np.ndarray, fid: int) -> tuple[np.ndarray, np.ndarray]:
+        # No validation: the IK inner loop calls this with already-checked arrays.
+        model, data = self.model, self.data
+        pin.computeJointJacobians(model, data, self._to_pin(q))
+        pin.updateFramePlacement(model, data, fid)
+        J = pin.getFrameJacobian(model, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        if not self._identity_order:
+            J = J[:, self._idx]
+        return data.oMf[fid].homogeneous, J
+
+    # ------------------------------------------------------------------ batched
+
+    def _build_chain(self) -> None:
+        """Precompute the serial chain root -> frame for the vectorized numpy FK."""
+        model = self.model
+        self._chain_ok = True
+        chains = {}
+        for name, fid in self._frame_ids.items():
+            f = model.frames[fid]
+            joints = []
+            j = f.parentJoint
+            while j > 0:
+                joints.append(j)
+                j = model.parents[j]
+            joints.reverse()
+            steps = []
+            for j in joints:
+                jm = model.joints[j]
+                short = jm.shortname()
+                M = model.jointPlacements[j].homogeneous.copy()
+                iq = int(np.nonzero(self._idx == jm.idx_q)[0][0])
+                if short in ("JointModelRX", "JointModelRY", "JointModelRZ"):
+                    steps.append((M, "R", _AXES[short[-1]], iq))
+                elif short in ("JointModelPX", "JointModelPY", "JointModelPZ"):
+                    steps.append((M, "P", _AXES[short[-1]], iq))
+                elif short == "JointModelRevoluteUnaligned":
+                    steps.append((M, "R", np.asarray(jm.axis, dtype=np.float64).copy(), iq))
+                elif short == "JointModelPrismaticUnaligned":
+                    steps.append((M, "P", np.asarray(jm.axis, dtype=np.float64).copy(), iq))
+                else:
+                    self._chain_ok = False
+            chains[name] = (steps, f.placement.homogeneous.copy())
+        self._chains = chains
+
+    def fk_batch(self, Q: np.ndarray, frame: str = "cam") -> np.ndarray:
+        """T_base_<frame> for every row of Q (N, dof) -> (N, 4, 4); vectorized over N in numpy."""
+        self._frame_id(frame)
+        Q = np.asarray(Q, dtype=np.float64)
+        if Q.ndim != 2 or Q.shape[1] != self.dof:
+            raise ValueError(f"Q must have shape (N, {self.dof}), got {Q.shape}")
+        if not np.all(np.isfinite(Q)):
+            raise ValueError("Q contains NaN or inf")
+        n = Q.shape[0]
+        if not self._chain_ok:  # exotic joint types: fall back to one pinocchio call per row
+            return np.stack([self.fk(q, frame) for q in Q]) if n else np.empty((0, 4, 4))
+        steps, F = self._chains[frame]
+        T = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
+        for M, kind, axis, iq in steps:
+            J = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
+            x = Q[:, iq]
+            if kind == "R":  # Rodrigues, vectorized
+                K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+                s, c = np.sin(x)[:, None, None], np.cos(x)[:, None, None]
+                J[:, :3, :3] = np.eye(3) + s * K + (1 - c) * (K @ K)
+            else:
+                J[:, :3, 3] = x[:, None] * axis
+            T = T @ M @ J
+        return T @ F
+
+    def fk_positions(self, Q: np.ndarray, frame: str = "cam") -> np.ndarray:
+        """Origins of <frame> in the base frame for every row of Q (N, dof) -> (N, 3)."""
+        return self.fk_batch(Q, frame)[:, :3, 3].copy()
+
+    # ------------------------------------------------------------------ reach
+
+    def reach_sphere(self, frame: str = "cam") -> tuple[np.ndarray, float]:
+        """(center, radius): a sphere that contains every reachable origin of <frame>.
+
+        Center is the origin of the first joint (fixed in the base frame); the radius is the
+        sum of the link offsets after it (triangle inequality), so it is conservative: a
+        target outside the sphere is certainly unreachable, one inside may still be.
+        """
+        fid = self._frame_id(frame)
+        F = self._chains[frame][1]
+        model = self.model
+        j = model.frames[fid].parentJoint
+        joints = []
+        while j > 0:
+            joints.append(j)
+            j = model.parents[j]
+        joints.reverse()
+        if not joints:
+            return model.frames[fid].placement.translation.copy(), 0.0
+        # the first joint hangs off the root, so its origin does not depend on q
+        center = model.jointPlacements[joints[0]].translation
+        radius = sum(float(np.linalg.norm(model.jointPlacements[j].translation)) for j in joints[1:])
+        radius += float(np.linalg.norm(F[:3, 3]))
+        # prismatic joints extend the reach by their stroke
+        for j in joints:
+            if model.joints[j].shortname().startswith("JointModelP"):
+                iq = int(np.nonzero(self._idx == model.joints[j].idx_q)[0][0])
+                radius += float(max(abs(self.lower[iq]), abs(self.upper[iq])))
+        return np.array(center, dtype=np.float64), radius

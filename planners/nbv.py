@@ -1,0 +1,107 @@
+"""The quality metric Q shared by the probabilistic NBV planners (eq. 4-8), scored for all
+candidates of a step in one compiled call."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from planners import raycast
+from planners.config import NBVConfig
+from planners.grid import OccupancyGrid
+from planners.views import ray_bundle
+
+
+def feature_probability(grid: OccupancyGrid, frontier_ijk: np.ndarray, cfg: NBVConfig) -> tuple[np.ndarray, tuple]:
+    """p_φ of eq. 7 on the box of cells where it is not negligible: exp(-α (d/ℓ)²), d the distance to
+    the nearest frontier cell. Returns (values on the box, box slices)."""
+    cutoff = cfg.phi_length_m * np.sqrt(np.log(1e3) / cfg.alpha_phi)
+    pad = int(np.ceil(cutoff / grid.voxel)) + 1
+    lo = np.maximum(frontier_ijk.min(axis=0) - pad, 0)
+    hi = np.minimum(frontier_ijk.max(axis=0) + pad + 1, grid.shape)
+    box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
+    seed = np.ones(tuple(hi - lo), dtype=bool)
+    local = frontier_ijk - lo
+    seed[local[:, 0], local[:, 1], local[:, 2]] = False
+    d = ndimage.distance_transform_edt(seed) * grid.voxel
+    return np.exp(-cfg.alpha_phi * (d / cfg.phi_length_m) ** 2).astype(np.float32), box
+
+
+def cell_weights(grid: OccupancyGrid, frontier_ijk: np.ndarray, cfg: NBVConfig) -> np.ndarray:
+    """h(g)·p_φ(g) per cell, flat, zero where p_φ is negligible."""
+    w = np.zeros(grid.shape, dtype=np.float32)
+    phi, box = feature_probability(grid, frontier_ijk, cfg)
+    sub = grid.logodds[box]
+    h = _entropy_decrease(sub, grid.cfg.l_hit, grid.cfg.l_miss, grid.cfg.l_min, grid.cfg.l_max)
+    w[box] = h * phi
+    return w.reshape(-1)
+
+
+def _entropy_decrease(L: np.ndarray, l_hit: float, l_miss: float, l_min: float, l_max: float) -> np.ndarray:
+    L = L.astype(np.float64)
+
+    def H(l):
+        p = np.clip(1.0 / (1.0 + np.exp(-l)), 1e-12, 1 - 1e-12)
+        return -(p * np.log(p) + (1 - p) * np.log(1 - p))
+
+    p = 1.0 / (1.0 + np.exp(-L))
+    return (H(L) - (p * H(np.minimum(L + l_hit, l_max)) + (1 - p) * H(np.maximum(L + l_miss, l_min)))).astype(np.float32)
+
+
+def visibility_field(grid: OccupancyGrid, cfg: NBVConfig) -> np.ndarray:
+    """P[o_r = 0] per cell for eq. 8, flat; unknown cells get the configured prior."""
+    p_free = (1.0 / (1.0 + np.exp(grid.logodds))).astype(np.float32)  # 1 - sigmoid(L)
+    p_free[grid.unknown] = cfg.unknown_visibility
+    return p_free.reshape(-1)
+
+
+def gains(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights: np.ndarray,
+          p_free: np.ndarray, K: np.ndarray, image_size: tuple[int, int], cfg: NBVConfig) -> np.ndarray:
+    rays = ray_bundle(K, image_size, cfg.rays_w, cfg.rays_h)
+    return raycast.view_gains(np.ascontiguousarray(eyes, dtype=np.float64),
+                              np.ascontiguousarray(rotations, dtype=np.float64),
+                              rays, float(cfg.max_range_m), grid.lo, grid.voxel,
+                              np.asarray(grid.shape, dtype=np.int64), p_free, weights,
+                              int(numba.get_num_threads()))
+
+
+def quality(gain: np.ndarray, cost: np.ndarray, lam: float) -> np.ndarray:
+    """Eq. 4: convex combination of the normalized gain and the normalized travel cost."""
+    gs = gain.sum()
+    cs = cost.sum()
+    g = gain / gs if gs > 0 else np.zeros_like(gain)
+    c = cost / cs if cs > 0 else np.zeros_like(cost)
+    return lam * g - (1.0 - lam) * c
+
+
+def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, normal: np.ndarray | None,
+                  cfg: NBVConfig) -> np.ndarray:
+    """Mask of candidate positions a camera may occupy and see the target from: inside the grid, above
+    the floor limit, clear of occupied cells, on the observed side of the surface within the viewing
+    cone, and with no occupied cell on the line of sight."""
+    margin = cfg.clearance_m
+    ok = np.all((eyes >= grid.lo + margin) & (eyes <= grid.hi - margin), axis=1)
+    ok &= eyes[:, 2] >= cfg.min_camera_z_m
+    if normal is not None:
+        v = eyes - target
+        cosang = (v @ normal) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
+        ok &= cosang >= np.cos(np.deg2rad(cfg.max_view_angle_deg))
+    occ = np.argwhere(grid.occupied)
+    if len(occ) and ok.any() and margin > 0:
+        tree = cKDTree(grid.centers(occ))
+        d, _ = tree.query(eyes[ok], k=1, distance_upper_bound=margin)
+        idx = np.flatnonzero(ok)
+        ok[idx[np.isfinite(d)]] = False
+    if ok.any():
+        idx = np.flatnonzero(ok)
+        e = eyes[idx]
+        v = target - e
+        L = np.linalg.norm(v, axis=1, keepdims=True)
+        stop_short = e + v * np.clip((L - 3 * grid.voxel) / L, 0, 1)
+        blocked = raycast.segments_blocked(np.ascontiguousarray(e), np.ascontiguousarray(stop_short), grid.lo,
+                                           grid.voxel, np.asarray(grid.shape, dtype=np.int64),
+                                           grid.occupied.reshape(-1).view(np.uint8))
+        ok[idx[blocked]] = False
+    return ok

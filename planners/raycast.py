@@ -1,0 +1,248 @@
+"""Compiled voxel-traversal kernels (Amanatides-Woo DDA). Every per-ray and per-candidate loop of the
+planners lives here, in numba, never in Python."""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+FREE = np.int8(1)
+HIT = np.int8(2)
+
+
+@nb.njit(cache=True, inline="always")
+def _flat(i, j, k, ny, nz):
+    return (i * ny + j) * nz + k
+
+
+@nb.njit(cache=True, parallel=True)
+def mark_scan(origin, points, lo, voxel, shape, truncation, marks):
+    """Mark the cells one scan touches: HIT where a point lands, FREE along each ray before it
+    (stopping `truncation` cells short of the hit so noise does not carve the surface)."""
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    n = points.shape[0]
+    for r in nb.prange(n):
+        i = int(np.floor((points[r, 0] - lo[0]) / voxel))
+        j = int(np.floor((points[r, 1] - lo[1]) / voxel))
+        k = int(np.floor((points[r, 2] - lo[2]) / voxel))
+        if 0 <= i < nx and 0 <= j < ny and 0 <= k < nz:
+            marks[_flat(i, j, k, ny, nz)] = HIT
+    for r in nb.prange(n):
+        ox = origin[0]
+        oy = origin[1]
+        oz = origin[2]
+        dx = points[r, 0] - ox
+        dy = points[r, 1] - oy
+        dz = points[r, 2] - oz
+        length = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if length < 1e-9:
+            continue
+        # stop short of the hit by `truncation` voxels
+        tmax_len = length - truncation * voxel
+        if tmax_len <= 0:
+            continue
+        dx /= length
+        dy /= length
+        dz /= length
+        _traverse_free(ox, oy, oz, dx, dy, dz, tmax_len, lo, voxel, nx, ny, nz, marks)
+
+
+@nb.njit(cache=True, inline="always")
+def _traverse_free(ox, oy, oz, dx, dy, dz, tmax_len, lo, voxel, nx, ny, nz, marks):
+    # enter the grid box first
+    t0 = 0.0
+    t1 = tmax_len
+    o = (ox, oy, oz)
+    d = (dx, dy, dz)
+    n = (nx, ny, nz)
+    for a in range(3):
+        lo_a = lo[a]
+        hi_a = lo[a] + n[a] * voxel
+        if abs(d[a]) < 1e-12:
+            if o[a] < lo_a or o[a] >= hi_a:
+                return
+        else:
+            ta = (lo_a - o[a]) / d[a]
+            tb = (hi_a - o[a]) / d[a]
+            if ta > tb:
+                ta, tb = tb, ta
+            if ta > t0:
+                t0 = ta
+            if tb < t1:
+                t1 = tb
+    if t0 >= t1:
+        return
+    eps = 1e-7
+    px = ox + dx * (t0 + eps)
+    py = oy + dy * (t0 + eps)
+    pz = oz + dz * (t0 + eps)
+    i = min(max(int(np.floor((px - lo[0]) / voxel)), 0), nx - 1)
+    j = min(max(int(np.floor((py - lo[1]) / voxel)), 0), ny - 1)
+    k = min(max(int(np.floor((pz - lo[2]) / voxel)), 0), nz - 1)
+    si = 1 if dx > 0 else -1
+    sj = 1 if dy > 0 else -1
+    sk = 1 if dz > 0 else -1
+    inf = 1e30
+    tdx = voxel / abs(dx) if abs(dx) > 1e-12 else inf
+    tdy = voxel / abs(dy) if abs(dy) > 1e-12 else inf
+    tdz = voxel / abs(dz) if abs(dz) > 1e-12 else inf
+    nbx = lo[0] + (i + (1 if si > 0 else 0)) * voxel
+    nby = lo[1] + (j + (1 if sj > 0 else 0)) * voxel
+    nbz = lo[2] + (k + (1 if sk > 0 else 0)) * voxel
+    tx = (nbx - ox) / dx if abs(dx) > 1e-12 else inf
+    ty = (nby - oy) / dy if abs(dy) > 1e-12 else inf
+    tz = (nbz - oz) / dz if abs(dz) > 1e-12 else inf
+    while True:
+        f = _flat(i, j, k, ny, nz)
+        if marks[f] == 0:
+            marks[f] = FREE
+        tn = min(tx, ty, tz)
+        if tn >= t1:
+            return
+        if tx <= ty and tx <= tz:
+            i += si
+            tx += tdx
+            if i < 0 or i >= nx:
+                return
+        elif ty <= tz:
+            j += sj
+            ty += tdy
+            if j < 0 or j >= ny:
+                return
+        else:
+            k += sk
+            tz += tdz
+            if k < 0 or k >= nz:
+                return
+
+
+@nb.njit(cache=True, parallel=True)
+def view_gains(positions, rotations, ray_dirs, max_range, lo, voxel, shape, p_free, weight, n_chunks):
+    """gain(s) of eq. 5 for every candidate in one call: along each ray of the candidate's
+    (subsampled) image, sum weight[g] = h(g)·p_φ(g) times the visibility of eq. 8 (product of
+    P[o=0] of the cells before g); each cell counts once per candidate."""
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    m = positions.shape[0]
+    gains = np.zeros(m, dtype=np.float64)
+    stamps = np.zeros((n_chunks, nx * ny * nz), dtype=np.int32)
+    per = (m + n_chunks - 1) // n_chunks
+    for c in nb.prange(n_chunks):
+        stamp = stamps[c]
+        for s in range(c * per, min(m, (c + 1) * per)):
+            tag = s + 1
+            ox = positions[s, 0]
+            oy = positions[s, 1]
+            oz = positions[s, 2]
+            R = rotations[s]
+            total = 0.0
+            for r in range(ray_dirs.shape[0]):
+                cx = ray_dirs[r, 0]
+                cy = ray_dirs[r, 1]
+                cz = ray_dirs[r, 2]
+                dx = R[0, 0] * cx + R[0, 1] * cy + R[0, 2] * cz
+                dy = R[1, 0] * cx + R[1, 1] * cy + R[1, 2] * cz
+                dz = R[2, 0] * cx + R[2, 1] * cy + R[2, 2] * cz
+                total += _ray_gain(ox, oy, oz, dx, dy, dz, max_range, lo, voxel, nx, ny, nz,
+                                   p_free, weight, stamp, tag)
+            gains[s] = total
+    return gains
+
+
+@nb.njit(cache=True, inline="always")
+def _ray_gain(ox, oy, oz, dx, dy, dz, max_range, lo, voxel, nx, ny, nz, p_free, weight, stamp, tag):
+    t0 = 0.0
+    t1 = max_range
+    o = (ox, oy, oz)
+    d = (dx, dy, dz)
+    n = (nx, ny, nz)
+    for a in range(3):
+        lo_a = lo[a]
+        hi_a = lo[a] + n[a] * voxel
+        if abs(d[a]) < 1e-12:
+            if o[a] < lo_a or o[a] >= hi_a:
+                return 0.0
+        else:
+            ta = (lo_a - o[a]) / d[a]
+            tb = (hi_a - o[a]) / d[a]
+            if ta > tb:
+                ta, tb = tb, ta
+            if ta > t0:
+                t0 = ta
+            if tb < t1:
+                t1 = tb
+    if t0 >= t1:
+        return 0.0
+    eps = 1e-7
+    px = ox + dx * (t0 + eps)
+    py = oy + dy * (t0 + eps)
+    pz = oz + dz * (t0 + eps)
+    i = min(max(int(np.floor((px - lo[0]) / voxel)), 0), nx - 1)
+    j = min(max(int(np.floor((py - lo[1]) / voxel)), 0), ny - 1)
+    k = min(max(int(np.floor((pz - lo[2]) / voxel)), 0), nz - 1)
+    si = 1 if dx > 0 else -1
+    sj = 1 if dy > 0 else -1
+    sk = 1 if dz > 0 else -1
+    inf = 1e30
+    tdx = voxel / abs(dx) if abs(dx) > 1e-12 else inf
+    tdy = voxel / abs(dy) if abs(dy) > 1e-12 else inf
+    tdz = voxel / abs(dz) if abs(dz) > 1e-12 else inf
+    nbx = lo[0] + (i + (1 if si > 0 else 0)) * voxel
+    nby = lo[1] + (j + (1 if sj > 0 else 0)) * voxel
+    nbz = lo[2] + (k + (1 if sk > 0 else 0)) * voxel
+    tx = (nbx - ox) / dx if abs(dx) > 1e-12 else inf
+    ty = (nby - oy) / dy if abs(dy) > 1e-12 else inf
+    tz = (nbz - oz) / dz if abs(dz) > 1e-12 else inf
+    vis = 1.0
+    g = 0.0
+    while True:
+        f = _flat(i, j, k, ny, nz)
+        if stamp[f] != tag:
+            stamp[f] = tag
+            g += vis * weight[f]
+        vis *= p_free[f]
+        if vis < 1e-4:
+            return g
+        tn = min(tx, ty, tz)
+        if tn >= t1:
+            return g
+        if tx <= ty and tx <= tz:
+            i += si
+            tx += tdx
+            if i < 0 or i >= nx:
+                return g
+        elif ty <= tz:
+            j += sj
+            ty += tdy
+            if j < 0 or j >= ny:
+                return g
+        else:
+            k += sk
+            tz += tdz
+            if k < 0 or k >= nz:
+                return g
+
+
+@nb.njit(cache=True, parallel=True)
+def segments_blocked(starts, ends, lo, voxel, shape, blocked):
+    """For each segment, whether it crosses a cell flagged in `blocked` (uint8, flat)."""
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    m = starts.shape[0]
+    out = np.zeros(m, dtype=np.bool_)
+    for s in nb.prange(m):
+        dx = ends[s, 0] - starts[s, 0]
+        dy = ends[s, 1] - starts[s, 1]
+        dz = ends[s, 2] - starts[s, 2]
+        length = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if length < 1e-9:
+            continue
+        steps = int(length / (0.5 * voxel)) + 1
+        for q in range(steps + 1):
+            t = q / steps
+            i = int(np.floor((starts[s, 0] + dx * t - lo[0]) / voxel))
+            j = int(np.floor((starts[s, 1] + dy * t - lo[1]) / voxel))
+            k = int(np.floor((starts[s, 2] + dz * t - lo[2]) / voxel))
+            if 0 <= i < nx and 0 <= j < ny and 0 <= k < nz:
+                if blocked[_flat(i, j, k, ny, nz)]:
+                    out[s] = True
+                    break
+    return out

@@ -1,0 +1,65 @@
+"""Camera-pose geometry shared by the planners: look-at rotations and ray bundles, vectorized."""
+
+from __future__ import annotations
+
+import numpy as np
+
+WORLD_UP = np.array([0.0, 0.0, 1.0])
+
+
+def look_at_rotations(eyes: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """R_base_cam (M,3,3) with the optical axis (z) from each eye to its target and the image's
+    up (-y) as close to world up as the axis allows. Roll stays free for IK anyway."""
+    eyes = np.atleast_2d(eyes).astype(np.float64)
+    targets = np.broadcast_to(np.atleast_2d(targets), eyes.shape).astype(np.float64)
+    z = targets - eyes
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    up = np.broadcast_to(WORLD_UP, z.shape).copy()
+    degenerate = np.abs(z @ WORLD_UP) > 0.999
+    up[degenerate] = [1.0, 0.0, 0.0]
+    up_perp = up - (np.sum(up * z, axis=1, keepdims=True)) * z
+    up_perp /= np.linalg.norm(up_perp, axis=1, keepdims=True)
+    y = -up_perp
+    x = np.cross(y, z)
+    return np.stack([x, y, z], axis=2)
+
+
+def poses_from(eyes: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+    T = np.tile(np.eye(4), (len(eyes), 1, 1))
+    T[:, :3, :3] = rotations
+    T[:, :3, 3] = eyes
+    return T
+
+
+def ray_bundle(K: np.ndarray, image_size: tuple[int, int], n_w: int, n_h: int) -> np.ndarray:
+    """Unit ray directions (n_w*n_h, 3) in the optical frame through an even grid of pixels."""
+    w, h = image_size
+    us = (np.arange(n_w) + 0.5) * (w / n_w)
+    vs = (np.arange(n_h) + 0.5) * (h / n_h)
+    uu, vv = np.meshgrid(us, vs)
+    d = np.stack([(uu - K[0, 2]) / K[0, 0], (vv - K[1, 2]) / K[1, 1], np.ones_like(uu)], axis=-1).reshape(-1, 3)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def sphere_lattice(radius: float, inner: float, spacing: float) -> np.ndarray:
+    """Offsets of a cubic lattice inside a spherical shell: the candidate search primitive S(f)."""
+    n = int(np.ceil(radius / spacing))
+    ax = np.arange(-n, n + 1) * spacing
+    g = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), axis=-1).reshape(-1, 3)
+    r = np.linalg.norm(g, axis=1)
+    return g[(r <= radius) & (r >= inner)]
+
+
+def surface_normal(points: np.ndarray, center: np.ndarray, radius: float, toward: np.ndarray) -> np.ndarray | None:
+    """PCA normal of the surface points near `center`, flipped to face `toward` (a viewpoint that saw
+    them). None when too few points."""
+    d2 = np.sum((points - center) ** 2, axis=1)
+    near = points[d2 < radius * radius]
+    if len(near) < 10:
+        return None
+    c = near - near.mean(axis=0)
+    _, _, vt = np.linalg.svd(c.astype(np.float64), full_matrices=False)
+    n = vt[2]
+    if np.dot(n, toward - center) < 0:
+        n = -n
+    return n / np.linalg.norm(n)

@@ -1,0 +1,100 @@
+"""Validated configuration of the pybullet twin: the simulated D435, the hand-eye extrinsic and the
+twin itself. Pydantic v2 models; unknown fields are refused and every number must be finite."""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+from scipy.spatial.transform import Rotation
+
+_STRICT = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
+
+#: Image sizes the D435 colour stream offers that the twin supports (width, height).
+SUPPORTED_SIZES: tuple[tuple[int, int], ...] = ((848, 480), (640, 480))
+
+
+class D435Config(BaseModel):
+    """The simulated Intel RealSense D435, depth aligned to colour.
+
+    ``hfov_deg``/``vfov_deg`` are the colour FOV at the chosen resolution (69.4 x 42.5 at 848x480;
+    at 640x480 the colour image is a 4:3 crop, use about 55 x 42.5). ``depth_hfov_deg`` is the FOV of
+    the depth imager: its focal length in pixels at ``width`` sets the stereo noise
+    (:func:`sim.d435.depth_rms`)."""
+
+    model_config = _STRICT
+
+    width: int = 848
+    height: int = 480
+    hfov_deg: float = Field(69.4, gt=10.0, lt=150.0)
+    vfov_deg: float = Field(42.5, gt=10.0, lt=150.0)
+    depth_hfov_deg: float = Field(87.0, gt=10.0, lt=150.0)
+    baseline_m: float = Field(0.050, gt=0.005, le=0.5)
+    subpixel: float = Field(0.08, gt=0.0, le=1.0)
+    min_range_m: float = Field(0.2, ge=0.01, le=5.0)
+    max_range_m: float = Field(2.0, gt=0.05, le=20.0)
+    max_incidence_deg: float = Field(80.0, gt=0.0, le=90.0)
+    noise: bool = True
+    seed: int = Field(0, ge=0)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "D435Config":
+        if (self.width, self.height) not in SUPPORTED_SIZES:
+            raise ValueError(f"image size {self.width}x{self.height} not supported; use one of {SUPPORTED_SIZES}")
+        if self.min_range_m >= self.max_range_m:
+            raise ValueError(f"min_range_m ({self.min_range_m}) must be below max_range_m ({self.max_range_m})")
+        fx = 0.5 * self.width / math.tan(math.radians(self.hfov_deg) / 2.0)
+        fy = 0.5 * self.height / math.tan(math.radians(self.vfov_deg) / 2.0)
+        if abs(fx / fy - 1.0) > 0.05:
+            raise ValueError(
+                f"hfov_deg {self.hfov_deg} / vfov_deg {self.vfov_deg} at {self.width}x{self.height} give "
+                f"non-square pixels (fx={fx:.1f}, fy={fy:.1f}); the D435 colour camera has square pixels "
+                f"(at 640x480 use hfov_deg about 55)")
+        return self
+
+
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+
+class HandEyeConfig(BaseModel):
+    """T_flange_cam: the camera optical frame in the flange (``panda_hand``) frame. ``rpy_deg`` are
+    fixed-axis roll, pitch, yaw (URDF convention, R = Rz(yaw) Ry(pitch) Rx(roll)). The default puts
+    the optical z axis along the panda_hand z axis, 5 cm off along hand x and 4 cm forward."""
+
+    model_config = _STRICT
+
+    xyz: Vec3 = Field(default_factory=lambda: [0.05, 0.0, 0.04])
+    rpy_deg: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+    @model_validator(mode="after")
+    def _bounded(self) -> "HandEyeConfig":
+        if any(abs(v) > 0.5 for v in self.xyz):
+            raise ValueError(f"hand-eye translation {self.xyz} exceeds 0.5 m per axis")
+        if any(abs(v) > 360.0 for v in self.rpy_deg):
+            raise ValueError(f"hand-eye rpy_deg {self.rpy_deg} outside [-360, 360]")
+        return self
+
+    def T_flange_cam(self) -> np.ndarray:
+        """4x4 float64 T_flange_cam."""
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("xyz", self.rpy_deg, degrees=True).as_matrix()
+        T[:3, 3] = self.xyz
+        return T
+
+
+Joint7 = Annotated[list[Annotated[float, Field(ge=-4.0, le=4.0)]], Field(min_length=7, max_length=7)]
+
+
+class TwinConfig(BaseModel):
+    """The pybullet twin. ``execution``: "step" follows trajectories by position control with
+    dynamics at ``sim_hz``; "teleport" sets the joint states at each sample (fast tests)."""
+
+    model_config = _STRICT
+
+    camera: D435Config = Field(default_factory=D435Config)
+    hand_eye: HandEyeConfig = Field(default_factory=HandEyeConfig)
+    home_q: Joint7 = Field(default_factory=lambda: [0.0, -0.3, 0.0, -2.2, 0.0, 1.9, 0.785])
+    sim_hz: int = Field(240, ge=60, le=2000)
+    execution: Literal["step", "teleport"] = "step"

@@ -1,0 +1,451 @@
+"""The pybullet twin: a Franka Panda with a simulated D435 on its hand, in front of a `Scene`.
+
+``Twin(scene, config)`` opens its own DIRECT pybullet client (several twins can live in one
+process), loads the floor, the Panda (fixed base at the origin, so the pybullet world frame is the
+robot base frame) and the scene as two static bodies (object and paint). ``twin.arm`` implements
+``drivers.interfaces.Arm`` and ``twin.camera`` implements ``drivers.interfaces.RGBDCamera``.
+
+Never imports planners/ or cellctl/.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import tempfile
+import threading
+import time
+import weakref
+
+import numpy as np
+import pybullet as p
+import pybullet_data
+import trimesh
+
+from drivers.interfaces import (ArmModel, DeviceError, Intrinsics, JointTrajectory, RGBDFrame,
+                                TrajectoryError)
+from sim.config import TwinConfig
+from sim.d435 import apply_depth_noise, grazing_mask, intrinsics_for
+from sim.scenes.model import Scene
+
+PANDA_URDF = os.path.join(pybullet_data.getDataPath(), "franka_panda", "panda.urdf")
+PLANE_URDF = os.path.join(pybullet_data.getDataPath(), "plane.urdf")
+JOINT_NAMES: tuple[str, ...] = tuple(f"panda_joint{i}" for i in range(1, 8))
+FINGER_NAMES: tuple[str, ...] = ("panda_finger_joint1", "panda_finger_joint2")
+BASE_LINK = "panda_link0"
+FLANGE_LINK = "panda_hand"
+# Franka's published limits (Panda datasheet).
+MAX_VELOCITY = np.array([2.175] * 4 + [2.61] * 3)
+MAX_ACCELERATION = np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])
+MAX_JERK = np.array([7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0])
+MAX_TORQUE = np.array([87.0] * 4 + [12.0] * 3)
+FINGER_OPENING = 0.02  # m per finger, held still
+
+# Trajectory acceptance.
+START_TOLERANCE = 0.05  # rad: the first sample must be this close to the current joints
+VELOCITY_TOLERANCE = 1.10  # sample-to-sample speed may exceed the published limit by 10 %
+LIMIT_TOLERANCE = 1e-9  # rad
+# Position-control gains of pybullet's joint motors (tuned for sub-centiradian tracking at 240 Hz).
+POSITION_GAIN = 0.3
+VELOCITY_GAIN = 1.0
+SETTLE_TIME = 0.5  # s of extra stepping after the last sample, until within SETTLE_TOLERANCE
+SETTLE_TOLERANCE = 1e-3  # rad
+
+# Rendering.
+NEAR_M = 0.02
+LIGHT_DIRECTION = (0.4, 0.3, 1.0)  # from above, slightly in front of the robot
+LIGHT = dict(shadow=0, lightAmbientCoeff=0.55, lightDiffuseCoeff=0.45, lightSpecularCoeff=0.02)
+
+
+def _pose_matrix(position, quaternion_xyzw) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(p.getMatrixFromQuaternion(quaternion_xyzw)).reshape(3, 3)
+    T[:3, 3] = position
+    return T
+
+
+def _readonly(a) -> np.ndarray:
+    a = np.array(a, dtype=np.float64)
+    a.setflags(write=False)
+    return a
+
+
+def _check_pose(T: np.ndarray) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"T_base_cam must be a finite 4x4 matrix, got shape {T.shape}")
+    R = T[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise ValueError("T_base_cam is not a rigid transform")
+    return T
+
+
+def projection_matrix(K: Intrinsics, near: float, far: float) -> np.ndarray:
+    """OpenGL projection (row-major 4x4) that makes pybullet's TinyRenderer sample pixel (u, v) along
+    the ray ((u - cx)/fx, (v - cy)/fy, 1) of our optical frame. TinyRenderer samples at pixel corners
+    and flips rows, hence the offsets (checked by fitting rendered planes: exact to 1e-3 px)."""
+    W, H = K.width, K.height
+    return np.array([
+        [2.0 * K.fx / W, 0.0, 1.0 - 2.0 * K.cx / W, 0.0],
+        [0.0, 2.0 * K.fy / H, (2.0 * K.cy + 2.0) / H - 1.0, 0.0],
+        [0.0, 0.0, -(far + near) / (far - near), -2.0 * far * near / (far - near)],
+        [0.0, 0.0, -1.0, 0.0],
+    ])
+
+
+def view_matrix(T_base_cam: np.ndarray) -> np.ndarray:
+    """OpenGL view matrix (row-major) of an optical-frame pose: the GL camera looks along -z with
+    y up, our optical frame looks along +z with y down."""
+    return np.linalg.inv(T_base_cam @ np.diag([1.0, -1.0, -1.0, 1.0]))
+
+
+class _Sim:
+    """What the arm and camera share: the client id, the body ids and one lock serializing all
+    pybullet calls (execute() may run in another thread than joint_positions()/stop())."""
+
+    def __init__(self) -> None:
+        self.client = -1
+        self.robot = -1
+        self.lock = threading.RLock()
+        self.closed = False
+
+    def check(self) -> None:
+        if self.closed:
+            raise DeviceError("the twin is closed")
+
+
+class TwinArm:
+    """The simulated Panda (implements ``drivers.interfaces.Arm``)."""
+
+    def __init__(self, sim: _Sim, config: TwinConfig) -> None:
+        self._sim = sim
+        self._config = config
+        c, robot = sim.client, sim.robot
+        by_name = {}
+        for j in range(p.getNumJoints(robot, physicsClientId=c)):
+            info = p.getJointInfo(robot, j, physicsClientId=c)
+            by_name[info[1].decode()] = info
+        self._joints = [by_name[n][0] for n in JOINT_NAMES]
+        self._fingers = [by_name[n][0] for n in FINGER_NAMES]
+        links = {info[12].decode(): info[0] for info in by_name.values()}
+        self.flange_index: int = links[FLANGE_LINK]
+        self.model = ArmModel(
+            urdf_path=PANDA_URDF,
+            base_link=BASE_LINK,
+            flange_link=FLANGE_LINK,
+            joint_names=JOINT_NAMES,
+            lower=_readonly([by_name[n][8] for n in JOINT_NAMES]),
+            upper=_readonly([by_name[n][9] for n in JOINT_NAMES]),
+            max_velocity=_readonly(MAX_VELOCITY),
+            max_acceleration=_readonly(MAX_ACCELERATION),
+            max_jerk=_readonly(MAX_JERK),
+            T_flange_cam=_readonly(config.hand_eye.T_flange_cam()),
+        )
+        self._dt = 1.0 / config.sim_hz
+        self._stop = threading.Event()
+
+    # ------------------------------------------------------------------ Arm protocol
+    def joint_positions(self) -> np.ndarray:
+        """Current joint angles (7,), radians. Non-blocking (waits at most one simulation step)."""
+        with self._sim.lock:
+            self._sim.check()
+            states = p.getJointStates(self._sim.robot, self._joints, physicsClientId=self._sim.client)
+        return np.array([s[0] for s in states])
+
+    def execute(self, trajectory: JointTrajectory) -> float:
+        """Follow ``trajectory``; blocks until done and returns the max joint tracking error (rad).
+
+        Refused with TrajectoryError before anything moves when: shapes are not (T,) / (T, 7), a
+        value is not finite, times do not start at 0 or do not strictly increase, a sample is outside
+        the URDF joint limits, the first sample is more than START_TOLERANCE from the current
+        joints, or the speed between samples exceeds the published limit by more than 10 %.
+        "step": pybullet position control at sim_hz on the piecewise-linear interpolation of the
+        samples (target velocities from ``trajectory.velocities`` when given); "teleport": joint
+        states are set sample by sample, error 0. Raises TrajectoryError if stop() aborts it."""
+        times, q, qd = self._validate(trajectory)
+        self._stop.clear()
+        if self._config.execution == "teleport":
+            return self._teleport(q)
+        return self._step(times, q, qd)
+
+    def stop(self) -> None:
+        """Abort a running execute() at its next simulation step (the arm holds where it is); when
+        idle, re-target the motors to the current joints."""
+        self._stop.set()
+        if self._sim.lock.acquire(blocking=False):
+            try:
+                if not self._sim.closed:
+                    self._hold(self.joint_positions())
+            finally:
+                self._sim.lock.release()
+
+    def camera_pose(self) -> np.ndarray:
+        """T_base_cam: pybullet's own link frame of panda_hand composed with T_flange_cam."""
+        with self._sim.lock:
+            self._sim.check()
+            st = p.getLinkState(self._sim.robot, self.flange_index, computeForwardKinematics=True,
+                                physicsClientId=self._sim.client)
+        return _pose_matrix(st[4], st[5]) @ self.model.T_flange_cam
+
+    # ------------------------------------------------------------------ twin only
+    def reset(self, q) -> None:
+        """Teleport to ``q`` (7,) with zero velocity; the motors then hold it. ValueError if not
+        finite or outside the joint limits."""
+        q = np.asarray(q, dtype=np.float64)
+        if q.shape != (7,) or not np.all(np.isfinite(q)):
+            raise ValueError(f"q must be 7 finite joint angles, got {q!r}")
+        if np.any(q < self.model.lower - LIMIT_TOLERANCE) or np.any(q > self.model.upper + LIMIT_TOLERANCE):
+            raise ValueError(f"q {np.round(q, 4).tolist()} outside the joint limits")
+        with self._sim.lock:
+            self._sim.check()
+            self._set_state(q)
+            self._hold(q)
+
+    # ------------------------------------------------------------------ internals
+    def _set_state(self, q: np.ndarray) -> None:
+        c, robot = self._sim.client, self._sim.robot
+        p.resetJointStatesMultiDof(robot, self._joints, [[float(v)] for v in q], [[0.0]] * 7, physicsClientId=c)
+        p.resetJointStatesMultiDof(robot, self._fingers, [[FINGER_OPENING]] * 2, [[0.0]] * 2, physicsClientId=c)
+
+    def _command(self, q: np.ndarray, qd: np.ndarray) -> None:
+        c, robot = self._sim.client, self._sim.robot
+        p.setJointMotorControlArray(robot, self._joints, p.POSITION_CONTROL, targetPositions=q.tolist(),
+                                    targetVelocities=qd.tolist(), forces=MAX_TORQUE.tolist(),
+                                    positionGains=[POSITION_GAIN] * 7, velocityGains=[VELOCITY_GAIN] * 7,
+                                    physicsClientId=c)
+        p.setJointMotorControlArray(robot, self._fingers, p.POSITION_CONTROL, targetPositions=[FINGER_OPENING] * 2,
+                                    forces=[20.0, 20.0], physicsClientId=c)
+
+    def _hold(self, q: np.ndarray) -> None:
+        self._command(np.asarray(q, dtype=np.float64), np.zeros(7))
+
+    def _validate(self, tr: JointTrajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        try:
+            times = np.asarray(tr.times, dtype=np.float64)
+            q = np.asarray(tr.positions, dtype=np.float64)
+            qd = None if tr.velocities is None else np.asarray(tr.velocities, dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise TrajectoryError(f"trajectory is not numeric: {e}") from e
+        if times.ndim != 1 or len(times) < 1 or q.shape != (len(times), 7):
+            raise TrajectoryError(f"need times (T,) and positions (T, 7) with T >= 1, got {times.shape} and {q.shape}")
+        if qd is not None and qd.shape != q.shape:
+            raise TrajectoryError(f"velocities must have shape {q.shape}, got {qd.shape}")
+        if not (np.all(np.isfinite(times)) and np.all(np.isfinite(q)) and (qd is None or np.all(np.isfinite(qd)))):
+            raise TrajectoryError("trajectory contains NaN or inf")
+        if abs(times[0]) > 1e-9 or np.any(np.diff(times) <= 0.0):
+            raise TrajectoryError("times must start at 0 and strictly increase")
+        lo, hi = self.model.lower - LIMIT_TOLERANCE, self.model.upper + LIMIT_TOLERANCE
+        bad = (q < lo) | (q > hi)
+        if np.any(bad):
+            k, j = np.argwhere(bad)[0]
+            raise TrajectoryError(f"sample {k}: joint {j + 1} = {q[k, j]:.4f} outside [{lo[j]:.4f}, {hi[j]:.4f}]")
+        if qd is not None and np.any(np.abs(qd) > VELOCITY_TOLERANCE * self.model.max_velocity):
+            raise TrajectoryError("trajectory velocities exceed the joint velocity limits")
+        if len(times) > 1:
+            speed = np.abs(np.diff(q, axis=0)) / np.diff(times)[:, None]
+            if np.any(speed > VELOCITY_TOLERANCE * self.model.max_velocity):
+                k, j = np.argwhere(speed > VELOCITY_TOLERANCE * self.model.max_velocity)[0]
+                raise TrajectoryError(f"segment {k}: joint {j + 1} moves at {speed[k, j]:.3f} rad/s, "
+                                      f"limit {self.model.max_velocity[j]:.3f}")
+        gap = np.max(np.abs(q[0] - self.joint_positions()))
+        if gap > START_TOLERANCE:
+            raise TrajectoryError(f"trajectory starts {gap:.3f} rad away from the current joints "
+                                  f"(tolerance {START_TOLERANCE})")
+        return times, q, qd
+
+    def _teleport(self, q: np.ndarray) -> float:
+        for sample in q:
+            if self._stop.is_set():
+                raise TrajectoryError("execution stopped")
+            with self._sim.lock:
+                self._sim.check()
+                self._set_state(sample)
+        with self._sim.lock:
+            self._hold(q[-1])
+        return 0.0
+
+    def _step(self, times: np.ndarray, q: np.ndarray, qd: np.ndarray | None) -> float:
+        dt = self._dt
+        n = max(1, int(math.ceil(times[-1] / dt - 1e-9)))
+        t = np.minimum(np.arange(1, n + 1) * dt, times[-1])
+        # piecewise-linear targets at every simulation step (vectorized over steps and joints)
+        seg = np.clip(np.searchsorted(times, t, side="right") - 1, 0, max(len(times) - 2, 0))
+        if len(times) == 1:
+            q_des = np.repeat(q[:1], n, axis=0)
+            v_des = np.zeros_like(q_des)
+        else:
+            h = times[seg + 1] - times[seg]
+            a = ((t - times[seg]) / h)[:, None]
+            q_des = q[seg] + a * (q[seg + 1] - q[seg])
+            v_des = (qd[seg] + a * (qd[seg + 1] - qd[seg])) if qd is not None else (q[seg + 1] - q[seg]) / h[:, None]
+        c, robot = self._sim.client, self._sim.robot
+        err = 0.0
+        for k in range(n):
+            if self._stop.is_set():
+                with self._sim.lock:
+                    self._hold(self.joint_positions())
+                raise TrajectoryError(f"execution stopped at t={k * dt:.3f} s")
+            with self._sim.lock:
+                self._sim.check()
+                self._command(q_des[k], v_des[k])
+                p.stepSimulation(physicsClientId=c)
+                now = np.array([s[0] for s in p.getJointStates(robot, self._joints, physicsClientId=c)])
+            err = max(err, float(np.max(np.abs(now - q_des[k]))))
+        # settle on the last sample
+        with self._sim.lock:
+            self._hold(q[-1])
+            for _ in range(int(SETTLE_TIME / dt)):
+                if self._stop.is_set():
+                    raise TrajectoryError("execution stopped while settling")
+                p.stepSimulation(physicsClientId=c)
+                now = np.array([s[0] for s in p.getJointStates(robot, self._joints, physicsClientId=c)])
+                if np.max(np.abs(now - q[-1])) < SETTLE_TOLERANCE:
+                    break
+        return err
+
+
+class TwinCamera:
+    """The simulated D435 on the hand (implements ``drivers.interfaces.RGBDCamera``).
+
+    Each frame: TinyRenderer image at the pose, metric depth along the optical axis, NaN outside
+    [min_range_m, max_range_m], NaN at grazing incidence and depth discontinuities, then Gaussian
+    noise with the datasheet RMS (rng seeded with ``config.camera.seed``, advancing per frame).
+    ``last_truth`` holds the noise-free depth of the last frame (same NaN pattern)."""
+
+    def __init__(self, sim: _Sim, arm: TwinArm, config: TwinConfig) -> None:
+        self._sim = sim
+        self._arm = arm
+        self._cfg = config.camera
+        self.intrinsics: Intrinsics = intrinsics_for(self._cfg)
+        self.K: np.ndarray = self.intrinsics.matrix()
+        self.far_m: float = max(4.0, 2.0 * self._cfg.max_range_m)
+        self._proj = projection_matrix(self.intrinsics, NEAR_M, self.far_m).T.ravel().tolist()
+        self._rng = np.random.default_rng(self._cfg.seed)
+        self.last_truth: np.ndarray | None = None
+
+    def capture(self) -> RGBDFrame:
+        """Render a frame from the arm's current camera_pose(). Blocks for the render (~0.1-0.2 s)."""
+        return self.capture_at(self._arm.camera_pose())
+
+    def capture_at(self, T_base_cam: np.ndarray) -> RGBDFrame:
+        """Twin only: a frame from an explicit T_base_cam (the arm is not moved)."""
+        color, raw = self.render(T_base_cam)
+        truth = self._sensor(raw)
+        self.last_truth = truth
+        depth = apply_depth_noise(truth, self._cfg, self._rng)
+        return RGBDFrame(color=color, depth=depth, intrinsics=self.intrinsics, timestamp=time.monotonic())
+
+    def render_truth(self, T_base_cam: np.ndarray | None = None) -> np.ndarray:
+        """Noise-free sensor depth (range limits and grazing applied) without advancing the noise
+        rng; at the arm's current camera pose when ``T_base_cam`` is None."""
+        T = self._arm.camera_pose() if T_base_cam is None else T_base_cam
+        return self._sensor(self.render(T)[1])
+
+    def render(self, T_base_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Raw render: (color (H, W, 3) uint8 RGB, depth (H, W) float32 metres along the optical axis,
+        NaN where nothing is hit) without any sensor effect."""
+        T = _check_pose(T_base_cam)
+        K = self.intrinsics
+        with self._sim.lock:
+            self._sim.check()
+            _, _, rgba, zbuf, _ = p.getCameraImage(
+                K.width, K.height, viewMatrix=view_matrix(T).T.ravel().tolist(), projectionMatrix=self._proj,
+                renderer=p.ER_TINY_RENDERER, flags=p.ER_NO_SEGMENTATION_MASK,
+                lightDirection=LIGHT_DIRECTION, physicsClientId=self._sim.client, **LIGHT)
+        color = np.ascontiguousarray(np.asarray(rgba, dtype=np.uint8).reshape(K.height, K.width, 4)[..., :3])
+        zbuf = np.asarray(zbuf, dtype=np.float64).reshape(K.height, K.width)
+        n, f = NEAR_M, self.far_m
+        z = f * n / (f - (f - n) * zbuf)
+        z[z > 0.999 * f] = np.nan  # cleared depth buffer: nothing hit
+        return color, z.astype(np.float32)
+
+    def _sensor(self, raw: np.ndarray) -> np.ndarray:
+        cfg = self._cfg
+        invalid = grazing_mask(raw, self.K, cfg.max_incidence_deg)
+        with np.errstate(invalid="ignore"):
+            invalid |= ~((raw >= cfg.min_range_m) & (raw <= cfg.max_range_m))
+        return np.where(invalid, np.float32(np.nan), raw).astype(np.float32)
+
+
+def _export_obj(mesh: trimesh.Trimesh, path: str) -> None:
+    # No normals: pybullet then shades each triangle flat with its own face normal.
+    data = trimesh.exchange.obj.export_obj(mesh, include_normals=False, include_color=False,
+                                           include_texture=False, write_texture=False)
+    with open(path, "w") as fh:
+        fh.write(data)
+
+
+def _shutdown(sim: _Sim, tmpdir: str) -> None:
+    with sim.lock:
+        if not sim.closed:
+            sim.closed = True
+            try:
+                p.disconnect(physicsClientId=sim.client)
+            except p.error:
+                pass
+    shutil.rmtree(tmpdir, ignore_errors=True)
+
+
+class Twin:
+    """pybullet twin of the cell. Use as a context manager or call close()."""
+
+    def __init__(self, scene: Scene, config: TwinConfig | None = None) -> None:
+        self.scene = scene
+        self.config = config if config is not None else TwinConfig()
+        self._tmpdir = tempfile.mkdtemp(prefix="scrapcell-twin-")
+        self._sim = _Sim()
+        self._finalizer = weakref.finalize(self, _shutdown, self._sim, self._tmpdir)
+        try:
+            self._build()
+        except BaseException:
+            self.close()
+            raise
+
+    def _build(self) -> None:
+        sim = self._sim
+        sim.client = c = p.connect(p.DIRECT)
+        if c < 0:
+            raise DeviceError("could not open a pybullet DIRECT client")
+        p.setGravity(0.0, 0.0, -9.81, physicsClientId=c)
+        p.setTimeStep(1.0 / self.config.sim_hz, physicsClientId=c)
+        self.floor_id: int = p.loadURDF(PLANE_URDF, physicsClientId=c)
+        sim.robot = p.loadURDF(PANDA_URDF, basePosition=[0, 0, 0], useFixedBase=True, physicsClientId=c)
+        self.robot_id: int = sim.robot
+        self.object_id = self._add_static(self.scene.object_mesh, self.scene.object_rgb, "object.obj")
+        self.paint_id = self._add_static(self.scene.paint_mesh, self.scene.paint_rgb, "paint.obj")
+        self.arm = TwinArm(sim, self.config)
+        self.camera = TwinCamera(sim, self.arm, self.config)
+        self.arm.reset(np.asarray(self.config.home_q))
+
+    def _add_static(self, mesh: trimesh.Trimesh, rgb, name: str) -> int | None:
+        if mesh is None or len(mesh.faces) == 0:
+            return None
+        c = self._sim.client
+        path = os.path.join(self._tmpdir, name)
+        _export_obj(mesh, path)
+        vis = p.createVisualShape(p.GEOM_MESH, fileName=path, rgbaColor=[*map(float, rgb), 1.0], physicsClientId=c)
+        col = p.createCollisionShape(p.GEOM_MESH, fileName=path, flags=p.GEOM_FORCE_CONCAVE_TRIMESH, physicsClientId=c)
+        if vis < 0 or col < 0:
+            raise DeviceError(f"pybullet could not load {name} ({len(mesh.faces)} faces)")
+        return p.createMultiBody(baseMass=0.0, baseCollisionShapeIndex=col, baseVisualShapeIndex=vis,
+                                 physicsClientId=c)
+
+    @property
+    def client(self) -> int:
+        """The pybullet physicsClientId of this twin."""
+        return self._sim.client
+
+    def render_truth(self, T_base_cam: np.ndarray | None = None) -> np.ndarray:
+        """Noise-free sensor depth at ``T_base_cam`` (default: the arm's camera pose)."""
+        return self.camera.render_truth(T_base_cam)
+
+    def close(self) -> None:
+        """Disconnect the pybullet client and remove the temporary mesh files. Idempotent."""
+        self._finalizer()
+
+    def __enter__(self) -> "Twin":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
