@@ -13,7 +13,7 @@ import numpy as np
 
 from cellctl.config import MotionConfig
 from drivers.interfaces import Arm, DeviceError, JointTrajectory, RGBDCamera
-from planners import clouds
+from planners import clouds, raycast
 from planners.base import ScanState, ViewPlan
 from planners.clouds import Cloud
 from planners.config import PlannersConfig
@@ -90,6 +90,7 @@ class ScanJob:
         self.kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
         self.recorder = recorder
         self.progress = progress
+        raycast.warmup()  # compile before the clock starts, like any service would at boot
         self.grid = OccupancyGrid(pcfg.grid)
         self.surface = Cloud.empty()
         self.drawing = Cloud.empty()

@@ -62,7 +62,7 @@ class NBVConfig(_Strict):
     max_view_angle_deg: float = Field(70.0, gt=0, le=90, description="candidates within this angle of the surface normal")
     min_camera_z_m: float = Field(0.12, description="candidates below this height are not generated")
     clearance_m: float = Field(0.06, ge=0, le=0.5, description="candidates this close to occupied cells are dropped")
-    unknown_visibility: float = Field(0.5, gt=0, le=1,
+    unknown_visibility: float = Field(0.95, gt=0, le=1,
                                       description="P[o=0] of an unknown cell in eq. 8 (paper: 0.5)")
     rays_w: int = Field(48, ge=4, le=400)
     rays_h: int = Field(28, ge=3, le=300)

@@ -42,7 +42,7 @@ class OccupancyGrid:
             return
         marks = self._marks
         marks[:] = 0
-        raycast.mark_scan(np.asarray(origin, dtype=np.float64), np.ascontiguousarray(points, dtype=np.float64),
+        raycast.mark_scan(np.ascontiguousarray(origin, dtype=np.float64), np.ascontiguousarray(points, dtype=np.float64),
                           self.lo, self.voxel, np.asarray(self.shape, dtype=np.int64),
                           float(truncation_voxels), marks)
         flat = self.logodds.reshape(-1)
@@ -79,11 +79,21 @@ class OccupancyGrid:
         """Cells with an unknown neighbour and a drawing neighbour (§V-B). Only unknown cells that
         touch observed free space count: the inside of a solid object is unknown forever and
         would otherwise make every drawing cell a frontier."""
-        unknown = self.unknown
-        open_unknown = unknown & ndimage.binary_dilation(self.free, structure=_N6)
+        out = np.zeros(self.shape, dtype=bool)
+        ijk = np.argwhere(self.drawing)
+        if len(ijk) == 0:
+            return out
+        # only cells next to the drawing can qualify: work on its bounding box (+3 cells of context)
+        lo = np.maximum(ijk.min(axis=0) - 3, 0)
+        hi = np.minimum(ijk.max(axis=0) + 4, self.shape)
+        box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
+        L = self.logodds[box]
+        unknown = L == 0
+        open_unknown = unknown & ndimage.binary_dilation(L < 0, structure=_N6)
         near_unknown = ndimage.binary_dilation(open_unknown, structure=_N26)
-        near_drawing = ndimage.binary_dilation(self.drawing, structure=_N26)
-        return near_unknown & near_drawing & ~unknown
+        near_drawing = ndimage.binary_dilation(self.drawing[box], structure=_N26)
+        out[box] = near_unknown & near_drawing & ~unknown
+        return out
 
     def expected_entropy_decrease(self) -> np.ndarray:
         """h(g) of eq. 6 for one more measurement: H(p) - E[H(p')], the expectation over a hit

@@ -29,14 +29,16 @@ def feature_probability(grid: OccupancyGrid, frontier_ijk: np.ndarray, cfg: NBVC
     return np.exp(-cfg.alpha_phi * (d / cfg.phi_length_m) ** 2).astype(np.float32), box
 
 
-def cell_weights(grid: OccupancyGrid, frontier_ijk: np.ndarray, cfg: NBVConfig) -> np.ndarray:
-    """h(g)·p_φ(g) per cell, flat, zero where p_φ is negligible."""
+def cell_weights(grid: OccupancyGrid, frontier_ijk: np.ndarray, cfg: NBVConfig) -> tuple[np.ndarray, np.ndarray]:
+    """h(g)·p_φ(g) per cell, flat, zero where p_φ is negligible; and that box's (lo, hi) corners in
+    metres, (2, 3)."""
     w = np.zeros(grid.shape, dtype=np.float32)
     phi, box = feature_probability(grid, frontier_ijk, cfg)
     sub = grid.logodds[box]
     h = _entropy_decrease(sub, grid.cfg.l_hit, grid.cfg.l_miss, grid.cfg.l_min, grid.cfg.l_max)
     w[box] = h * phi
-    return w.reshape(-1)
+    corners = np.array([[s.start for s in box], [s.stop for s in box]], dtype=np.float64) * grid.voxel + grid.lo
+    return w.reshape(-1), corners
 
 
 def _entropy_decrease(L: np.ndarray, l_hit: float, l_miss: float, l_min: float, l_max: float) -> np.ndarray:
@@ -57,13 +59,15 @@ def visibility_field(grid: OccupancyGrid, cfg: NBVConfig) -> np.ndarray:
     return p_free.reshape(-1)
 
 
-def gains(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights: np.ndarray,
+def gains(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights: tuple[np.ndarray, np.ndarray],
           p_free: np.ndarray, K: np.ndarray, image_size: tuple[int, int], cfg: NBVConfig) -> np.ndarray:
+    """gain(s) of eq. 5 for all candidates; `weights` is what cell_weights returns."""
+    w, box = weights
     rays = ray_bundle(K, image_size, cfg.rays_w, cfg.rays_h)
     return raycast.view_gains(np.ascontiguousarray(eyes, dtype=np.float64),
                               np.ascontiguousarray(rotations, dtype=np.float64),
                               rays, float(cfg.max_range_m), grid.lo, grid.voxel,
-                              np.asarray(grid.shape, dtype=np.int64), p_free, weights,
+                              np.asarray(grid.shape, dtype=np.int64), p_free, w, box[0], box[1],
                               int(numba.get_num_threads()))
 
 

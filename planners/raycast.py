@@ -117,10 +117,11 @@ def _traverse_free(ox, oy, oz, dx, dy, dz, tmax_len, lo, voxel, nx, ny, nz, mark
 
 
 @nb.njit(cache=True, parallel=True)
-def view_gains(positions, rotations, ray_dirs, max_range, lo, voxel, shape, p_free, weight, n_chunks):
+def view_gains(positions, rotations, ray_dirs, max_range, lo, voxel, shape, p_free, weight, roi_lo, roi_hi, n_chunks):
     """gain(s) of eq. 5 for every candidate in one call: along each ray of the candidate's
     (subsampled) image, sum weight[g] = h(g)·p_φ(g) times the visibility of eq. 8 (product of
-    P[o=0] of the cells before g); each cell counts once per candidate."""
+    P[o=0] of the cells before g); each cell counts once per candidate. weight is zero outside the
+    box [roi_lo, roi_hi], so rays that miss it are skipped and the others stop where they leave it."""
     nx, ny, nz = shape[0], shape[1], shape[2]
     m = positions.shape[0]
     gains = np.zeros(m, dtype=np.float64)
@@ -142,10 +143,37 @@ def view_gains(positions, rotations, ray_dirs, max_range, lo, voxel, shape, p_fr
                 dx = R[0, 0] * cx + R[0, 1] * cy + R[0, 2] * cz
                 dy = R[1, 0] * cx + R[1, 1] * cy + R[1, 2] * cz
                 dz = R[2, 0] * cx + R[2, 1] * cy + R[2, 2] * cz
-                total += _ray_gain(ox, oy, oz, dx, dy, dz, max_range, lo, voxel, nx, ny, nz,
-                                   p_free, weight, stamp, tag)
+                t_end = _box_exit(ox, oy, oz, dx, dy, dz, roi_lo, roi_hi, max_range)
+                if t_end > 0.0:
+                    total += _ray_gain(ox, oy, oz, dx, dy, dz, t_end, lo, voxel, nx, ny, nz,
+                                       p_free, weight, stamp, tag)
             gains[s] = total
     return gains
+
+
+@nb.njit(cache=True, inline="always")
+def _box_exit(ox, oy, oz, dx, dy, dz, blo, bhi, max_range):
+    """Distance at which the ray leaves the box, or -1 if it never enters it within max_range."""
+    t0 = 0.0
+    t1 = max_range
+    o = (ox, oy, oz)
+    d = (dx, dy, dz)
+    for a in range(3):
+        if abs(d[a]) < 1e-12:
+            if o[a] < blo[a] or o[a] > bhi[a]:
+                return -1.0
+        else:
+            ta = (blo[a] - o[a]) / d[a]
+            tb = (bhi[a] - o[a]) / d[a]
+            if ta > tb:
+                ta, tb = tb, ta
+            if ta > t0:
+                t0 = ta
+            if tb < t1:
+                t1 = tb
+    if t0 >= t1:
+        return -1.0
+    return t1
 
 
 @nb.njit(cache=True, inline="always")
@@ -246,3 +274,14 @@ def segments_blocked(starts, ends, lo, voxel, shape, blocked):
                     out[s] = True
                     break
     return out
+
+
+def warmup() -> None:
+    """Compile (or load from numba's cache) every kernel before the first timed planning step."""
+    lo = np.zeros(3)
+    shape = np.array([4, 4, 4], dtype=np.int64)
+    marks = np.zeros(64, dtype=np.int8)
+    mark_scan(np.array([0.5, 0.5, 3.5]) * 0.01, np.array([[0.02, 0.02, 0.005]]), lo, 0.01, shape, 1.0, marks)
+    view_gains(np.array([[0.02, 0.02, 0.035]]), np.eye(3)[None], np.array([[0.0, 0.0, 1.0]]), 0.1, lo, 0.01, shape,
+               np.ones(64, np.float32), np.ones(64, np.float32), lo, np.full(3, 0.04), 1)
+    segments_blocked(np.zeros((1, 3)), np.full((1, 3), 0.03), lo, 0.01, shape, np.zeros(64, np.uint8))

@@ -95,6 +95,6 @@ class TwinConfig(BaseModel):
 
     camera: D435Config = Field(default_factory=D435Config)
     hand_eye: HandEyeConfig = Field(default_factory=HandEyeConfig)
-    home_q: Joint7 = Field(default_factory=lambda: [0.0, -0.3, 0.0, -2.2, 0.0, 1.9, 0.785])
+    home_q: Joint7 = Field(default_factory=lambda: [0.0, -0.7, 0.0, -2.4, 0.0, 2.2, 0.785])
     sim_hz: int = Field(240, ge=60, le=2000)
     execution: Literal["step", "teleport"] = "step"

@@ -45,15 +45,6 @@ def apply_depth_noise(depth: np.ndarray, cfg: D435Config, rng: np.random.Generat
     return (depth + rng.standard_normal(depth.shape, dtype=np.float32) * sigma).astype(np.float32)
 
 
-def back_project(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(H, W) depth along the optical axis -> (H, W, 3) float32 points in the optical frame."""
-    h, w = depth.shape
-    z = np.asarray(depth, dtype=np.float32)
-    u = ((np.arange(w, dtype=np.float32) - np.float32(K[0, 2])) / np.float32(K[0, 0]))[None, :]
-    v = ((np.arange(h, dtype=np.float32) - np.float32(K[1, 2])) / np.float32(K[1, 1]))[:, None]
-    return np.stack([u * z, v * z, z], axis=-1)
-
-
 def grazing_mask(depth: np.ndarray, K: np.ndarray, max_incidence_deg: float) -> np.ndarray:
     """Pixels a D435 would not return: True where the viewing ray meets the surface more obliquely
     than ``max_incidence_deg``, at depth discontinuities (a 4-neighbour jumps further than a surface
@@ -71,22 +62,29 @@ def grazing_mask(depth: np.ndarray, K: np.ndarray, max_incidence_deg: float) -> 
     # Discontinuities. A plane at incidence theta changes depth between neighbouring pixels by at
     # most z / (f cos theta); a bigger jump (with a 1.5x margin) is an edge between two surfaces.
     theta = math.radians(min(max_incidence_deg, 85.0))
-    rel = np.float32(1.5 / (min(K[0, 0], K[1, 1]) * math.cos(theta)))
+    thresh = np.float32(1.5 / (min(K[0, 0], K[1, 1]) * math.cos(theta))) * z
     zp = np.pad(z, 1, mode="edge")
-    centre = zp[1:-1, 1:-1]
-    thresh = rel * centre
-    jump = np.zeros(z.shape, dtype=bool)
-    for nb in (zp[:-2, 1:-1], zp[2:, 1:-1], zp[1:-1, :-2], zp[1:-1, 2:]):
-        with np.errstate(invalid="ignore"):
-            jump |= ~(np.abs(nb - centre) <= thresh)  # NaN neighbour counts as a jump
+    invalid = ~finite
+    with np.errstate(invalid="ignore"):
+        for nb in (zp[:-2, 1:-1], zp[2:, 1:-1], zp[1:-1, :-2], zp[1:-1, 2:]):
+            invalid |= ~(np.abs(nb - z) <= thresh)  # a NaN neighbour counts as a jump
 
-    # Incidence from normals of the back-projected points.
-    P = back_project(z, K)
-    Pp = np.pad(P, ((1, 1), (1, 1), (0, 0)), mode="edge")
-    du = Pp[1:-1, 2:] - Pp[1:-1, :-2]
-    dv = Pp[2:, 1:-1] - Pp[:-2, 1:-1]
-    n = np.cross(du, dv)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cos_inc = np.abs(np.einsum("hwk,hwk->hw", n, P)) / (np.linalg.norm(n, axis=-1) * np.linalg.norm(P, axis=-1))
-        grazing = ~(cos_inc >= np.float32(math.cos(math.radians(max_incidence_deg))))
-    return grazing | jump | ~finite
+    # Incidence: normals from central differences of the back-projected points P = z (a_u, b_v, 1);
+    # edge padding of z, a and b makes them one-sided at the image border.
+    h, w = z.shape
+    a = np.pad((np.arange(w, dtype=np.float32) - np.float32(K[0, 2])) / np.float32(K[0, 0]), 1, mode="edge")
+    b = np.pad((np.arange(h, dtype=np.float32) - np.float32(K[1, 2])) / np.float32(K[1, 1]), 1, mode="edge")
+    Xp = zp * a[None, :]
+    Yp = zp * b[:, None]
+    dux, duy, duz = (A[1:-1, 2:] - A[1:-1, :-2] for A in (Xp, Yp, zp))
+    dvx, dvy, dvz = (A[2:, 1:-1] - A[:-2, 1:-1] for A in (Xp, Yp, zp))
+    nx = duy * dvz - duz * dvy
+    ny = duz * dvx - dux * dvz
+    nz = dux * dvy - duy * dvx
+    X, Y = Xp[1:-1, 1:-1], Yp[1:-1, 1:-1]
+    dot = nx * X + ny * Y + nz * z
+    cos_max = np.float32(math.cos(math.radians(max_incidence_deg)))
+    with np.errstate(invalid="ignore", over="ignore"):
+        # cos(incidence) >= cos_max  <=>  dot^2 >= cos_max^2 |n|^2 |P|^2  (NaN compares False)
+        ok = dot * dot >= (cos_max * cos_max) * (nx * nx + ny * ny + nz * nz) * (X * X + Y * Y + z * z)
+    return invalid | ~ok

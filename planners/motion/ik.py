@@ -28,8 +28,8 @@ from .kinematics import Kinematics
 
 MAX_STEP = 0.4  # rad: largest joint change per iteration (keeps the linearisation honest)
 ROT_WEIGHT = 0.2  # m/rad: 1 rad of orientation error weighs like 0.2 m of position error
-_DAMP_K = 1.0
-_DAMP0 = 1e-4  # constant part of the LM damping (on the weighted residual, m^2)
+_DAMP_K = 1.0  # LM damping lambda^2 = _DAMP_K * |e|^2 + _DAMP0 (weighted residual, m^2)
+_DAMP0 = 1e-4
 _STALL_WINDOW = 25  # iterations without >1 % improvement before a seed is abandoned
 
 
@@ -247,7 +247,9 @@ def solve_camera_ik(
 
     best_pos, best_ang, best_cost = math.inf, math.inf, math.inf
     for k in range(seeds):
-        ok, q, pe, ae, its = _solve_from(kin, starts[k].copy(), p_t, R_t, free_roll, lo, hi, tol_pos, tol_ang, max_iter)
+        ok, q, pe, ae, its = _solve_from(
+            kin, starts[k].copy(), p_t, R_t, free_roll, lo, hi, tol_pos, tol_ang, max_iter
+        )
         if ok:
             return IKResult(q=q, position_error_m=pe, angle_error_rad=ae, iterations=its, seed_index=k)
         cost = pe * pe + (ROT_WEIGHT * ae) ** 2

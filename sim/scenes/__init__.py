@@ -1,0 +1,25 @@
+"""Test scenes for the twin: the built-in catalog and user YAML scene files.
+
+`load_scene("t_piece")` or `load_scene("configs/scenes/example_plate.yaml")` -> `Scene` in the
+robot base frame. Built-in scenes are built once per process; each call returns a fresh copy.
+"""
+
+from __future__ import annotations
+
+import os
+
+from sim.scenes.catalog import SCENE_NAMES, build_catalog_scene
+from sim.scenes.model import Scene
+from sim.scenes.scene_file import SceneError, load_scene_file
+
+__all__ = ["SCENE_NAMES", "Scene", "SceneError", "load_scene"]
+
+
+def load_scene(name_or_path: str | os.PathLike) -> Scene:
+    """A catalog scene by name, or a user scene from a .yaml/.yml file path."""
+    ref = os.fspath(name_or_path)
+    if ref in SCENE_NAMES:
+        return build_catalog_scene(ref)
+    if ref.lower().endswith((".yaml", ".yml")) or os.sep in ref or os.path.isfile(ref):
+        return load_scene_file(ref)
+    raise SceneError(f"unknown scene {ref!r}: use one of {', '.join(SCENE_NAMES)}, or a path to a .yaml scene file")

@@ -1,0 +1,104 @@
+"""Initial views: camera poses that each see part of the drawing (the paper's task #1, assumed done).
+
+The runner takes the first candidate the arm can reach, so candidates are ordered best first:
+a point a quarter of the way along the first polyline (so the planner still has to explore both
+ways), seen along the surface normal tilted up, since a Panda on the floor reaches down-looking
+poses most easily.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from sim.scenes.model import Scene
+from sim.scenes.paint import closest_points
+
+FRACTIONS = (0.25, 0.2, 0.3, 0.15, 0.35, 0.5, 0.75)
+#: weight of +z added to the unit normal: 1 views a wall from 45 deg above, 2 from 63 deg, 0.5 from 27
+UP_BLENDS = (1.0, 2.0, 0.5)
+
+
+def look_at(eye, target, up_hint=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """T_base_cam of an optical frame at `eye` with z toward `target`, x perpendicular to z and as
+    horizontal as `up_hint` allows, y down (image up is up_hint)."""
+    eye, target = np.asarray(eye, dtype=np.float64), np.asarray(target, dtype=np.float64)
+    z = target - eye
+    n = np.linalg.norm(z)
+    if not np.isfinite(n) or n < 1e-9:
+        raise ValueError("eye and target coincide")
+    z /= n
+    x = np.cross(z, np.asarray(up_hint, dtype=np.float64))
+    if np.linalg.norm(x) < 1e-6:  # looking along the hint: any horizontal x will do
+        x = np.cross(z, [1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.cross(z, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(z, x), z, eye
+    return T
+
+
+def segments_blocked(triangles: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
+    """(M,) bool: does segment start->end cross any triangle (Moller-Trumbore, box-culled)?"""
+    lo, hi = triangles.min(axis=1), triangles.max(axis=1)
+    out = np.zeros(len(starts), dtype=bool)
+    for i, (s, e) in enumerate(zip(starts, ends)):  # a handful of candidates, faces vectorized
+        cull = np.all((hi >= np.minimum(s, e)) & (lo <= np.maximum(s, e)), axis=1)
+        tri = triangles[cull]
+        if not len(tri):
+            continue
+        d = e - s
+        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        p = np.cross(d, e2)
+        det = np.einsum("ij,ij->i", e1, p)
+        ok = np.abs(det) > 1e-12
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        tv = s - tri[:, 0]
+        u = np.einsum("ij,ij->i", tv, p) * inv
+        q = np.cross(tv, e1)
+        v = (q @ d) * inv
+        t = np.einsum("ij,ij->i", e2, q) * inv
+        out[i] = np.any(ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (t < 1))
+    return out
+
+
+def _clearance(mesh, points: np.ndarray, spacing: float = 0.005) -> np.ndarray:
+    """Distance to the surface within about `spacing`, from a point sampling of it: exact queries
+    from far away touch too many faces of a finely painted mesh."""
+    n = int(np.ceil(mesh.area / spacing**2))
+    samples = mesh.sample(n, seed=0) if n else mesh.vertices
+    return cKDTree(np.vstack([samples, mesh.vertices])).query(points)[0]
+
+
+def initial_views(scene: Scene, standoff: float = 0.35, fractions=FRACTIONS, up_blends=UP_BLENDS,
+                  min_eye_z: float = 0.15, min_clearance: float = 0.1, end_gap: float = 0.005) -> np.ndarray:
+    """(M,4,4) T_base_cam candidates, best first; the scene's fixed initial camera leads.
+
+    Eyes below `min_eye_z`, nearer than `min_clearance` to the object (no room for the hand), or
+    whose sight line is blocked short of `end_gap` before the target are dropped.
+    """
+    mesh = scene.full_mesh
+    line = scene.drawing_polylines[0]
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
+    idx = np.searchsorted(arc, np.asarray(fractions) * arc[-1]).clip(0, len(line) - 1)
+    # the normal averaged over +-15 mm of line, so a point on a sharp rim gets a sensible one
+    window = (np.abs(arc[None, :] - arc[idx, None]) <= 0.015)
+    _, _, tri = closest_points(mesh, line[window.any(axis=0)])
+    face_n = np.zeros((len(line), 3))
+    face_n[window.any(axis=0)] = mesh.face_normals[tri]
+    normals = window.astype(np.float64) @ face_n
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True) + 1e-12
+
+    targets = np.repeat(line[idx], len(up_blends), axis=0)
+    dirs = np.repeat(normals, len(up_blends), axis=0) + np.tile(up_blends, len(idx))[:, None] * [0.0, 0.0, 1.0]
+    norm = np.linalg.norm(dirs, axis=1, keepdims=True)
+    ok = norm[:, 0] > 1e-6
+    eyes = targets + standoff * dirs / np.where(norm > 1e-6, norm, 1.0)
+    ok &= eyes[:, 2] >= min_eye_z
+    ok[ok] &= _clearance(mesh, eyes[ok]) >= min_clearance
+    sight = targets - eyes
+    ends = targets - end_gap * sight / np.linalg.norm(sight, axis=1, keepdims=True)
+    ok[ok] &= ~segments_blocked(mesh.triangles, eyes[ok], ends[ok])
+    poses = [look_at(e, t) for e, t in zip(eyes[ok], targets[ok])]
+    if scene.initial_camera_pose is not None:
+        poses.insert(0, np.asarray(scene.initial_camera_pose, dtype=np.float64))
+    return np.array(poses, dtype=np.float64).reshape(-1, 4, 4)
