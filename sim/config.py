@@ -65,7 +65,7 @@ class HandEyeConfig(BaseModel):
 
     model_config = _STRICT
 
-    xyz: Vec3 = Field(default_factory=lambda: [0.05, 0.0, 0.04])
+    xyz: Vec3 = Field(default_factory=lambda: [0.07, 0.0, 0.05])
     rpy_deg: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
 
     @model_validator(mode="after")

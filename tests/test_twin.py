@@ -133,7 +133,7 @@ def test_config_defaults_and_validation():
     with pytest.raises(ValidationError):
         TwinConfig(camera={"width": 848, "extra": 1})
     T = HandEyeConfig(rpy_deg=[0, 0, 90]).T_flange_cam()
-    assert np.allclose(T[:3, :3] @ [1, 0, 0], [0, 1, 0]) and np.allclose(T[:3, 3], [0.05, 0.0, 0.04])
+    assert np.allclose(T[:3, :3] @ [1, 0, 0], [0, 1, 0]) and np.allclose(T[:3, 3], [0.07, 0.0, 0.05])
 
 
 # ----------------------------------------------------------------------------- d435 model (pure numpy)

@@ -2,9 +2,9 @@
 
 The drawing becomes its own set of faces so the renderer colours it exactly (no texture seams) and
 the metrics get a ground truth cloud from the very faces the camera sees. Only the faces near the
-drawing are refined, by conforming longest-edge bisection: the mesh stays watertight (no
-T-junction cracks for the depth camera to see through) and long thin faces, such as the sides of
-a revolved pipe, become well-shaped instead of ever thinner.
+drawing are refined (render cost), by splitting edges at their midpoints, which keeps the mesh
+watertight (no T-junction cracks for the depth camera to see through), and flipping edges
+toward Delaunay, which turns the long needles of a revolved pipe into well-shaped triangles.
 """
 
 from __future__ import annotations
@@ -125,8 +125,7 @@ def _split_edges(vertices: np.ndarray, faces: np.ndarray, split_edge) -> tuple[n
     """Split the edges for which `split_edge(unique_edges, lengths)` is True at their midpoints.
 
     Splitting by edge (not by face) keeps the mesh conforming with no closure pass: both faces of
-    an edge see the same decision. A face with 1, 2 or 3 split edges becomes 2, 3 or 4 triangles,
-    so a long thin face is cut across its length only, never into thinner needles.
+    an edge see the same decision. A face with 1, 2 or 3 split edges becomes 2, 3 or 4 triangles.
     """
     nv = len(vertices)
     e = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
@@ -167,16 +166,19 @@ def _split_edges(vertices: np.ndarray, faces: np.ndarray, split_edge) -> tuple[n
     return vertices, np.vstack(out)
 
 
-def _flip_pass(vertices: np.ndarray, faces: np.ndarray, cos_coplanar: float = np.cos(1e-3)):
-    """Flip non-Delaunay edges between coplanar faces (geometry unchanged) -> (faces, n_flipped).
+def _flip_pass(vertices: np.ndarray, faces: np.ndarray, active: np.ndarray, max_bend: float = 5e-5):
+    """Flip non-Delaunay edges between nearly coplanar `active` faces -> (faces, n_flipped).
+
+    A flip may move the surface by at most `max_bend` (the height of the fourth vertex over the
+    first face's plane), far below the depth noise, so curved surfaces get flips too.
 
     Midpoint splits alone keep a needle (the diagonal of a long pipe facet) a needle at every
     scale; flips turn the split pieces into well-shaped triangles. Each face takes part in at most
     one flip per pass, so the pass is a plain array update.
     """
     nv = len(vertices)
-    fidx = np.repeat(np.arange(len(faces)), 3)
-    loc = np.tile(np.arange(3), len(faces))
+    fidx = np.repeat(np.flatnonzero(active), 3)
+    loc = np.tile(np.arange(3), len(fidx) // 3)
     a, b = faces[fidx, loc], faces[fidx, (loc + 1) % 3]
     key = np.minimum(a, b).astype(np.int64) * nv + np.maximum(a, b)
     order = np.argsort(key, kind="stable")
@@ -190,9 +192,9 @@ def _flip_pass(vertices: np.ndarray, faces: np.ndarray, cos_coplanar: float = np
     c, d = faces[f1, (k1 + 2) % 3], faces[f2, (k2 + 2) % 3]
     ok = (faces[f2, k2] == b) & (c != d)  # consistent winding
     pa, pb, pc, pd = vertices[a], vertices[b], vertices[c], vertices[d]
-    n1, n2 = np.cross(pb - pa, pc - pa), np.cross(pa - pb, pd - pb)
-    norm = np.linalg.norm(n1, axis=1) * np.linalg.norm(n2, axis=1) + 1e-300
-    ok &= np.einsum("ij,ij->i", n1, n2) / norm > cos_coplanar
+    n1 = np.cross(pb - pa, pc - pa)
+    n1 /= np.linalg.norm(n1, axis=1, keepdims=True) + 1e-300
+    ok &= np.abs(np.einsum("ij,ij->i", pd - pa, n1)) <= max_bend
 
     def angle(p, q, r):  # at p
         u, w = q - p, r - p
@@ -209,7 +211,8 @@ def _flip_pass(vertices: np.ndarray, faces: np.ndarray, cos_coplanar: float = np
         return faces, 0
     # an edge already present between c and d would become doubled
     cd = np.minimum(c[cand], d[cand]).astype(np.int64) * nv + np.maximum(c[cand], d[cand])
-    cand = cand[~np.isin(cd, ks)]
+    pos = np.searchsorted(ks, cd).clip(max=len(ks) - 1)
+    cand = cand[ks[pos] != cd]
     # independent set: an edge flips when it is the worst edge of both its faces
     best = np.full(len(faces), -1.0)
     np.maximum.at(best, f1[cand], excess[cand])
@@ -219,7 +222,7 @@ def _flip_pass(vertices: np.ndarray, faces: np.ndarray, cos_coplanar: float = np
     cand = cand[first]
     _, first = np.unique(f2[cand], return_index=True)
     cand = cand[first]
-    cand = cand[~np.isin(f1[cand], f2[cand])]
+    cand = cand[~np.isin(f1[cand], f2[cand])]  # (small arrays)
     faces = faces.copy()
     faces[f1[cand]] = np.column_stack([a[cand], d[cand], c[cand]])
     faces[f2[cand]] = np.column_stack([d[cand], b[cand], c[cand]])
@@ -227,7 +230,8 @@ def _flip_pass(vertices: np.ndarray, faces: np.ndarray, cos_coplanar: float = np
 
 
 def _refine_near(mesh: trimesh.Trimesh, samples: np.ndarray, radius: float, max_edge: float):
-    """Split edges until every face with a point within `radius` of the samples has edges <= max_edge.
+    """Split longest edges (then flip) until every face with a point within `radius` of the
+    samples has edges <= max_edge. Longest-edge splits keep shapes bounded; flips then fix needles.
 
     No point of a face whose longest edge is L lies nearer than (its nearest vertex's distance - L),
     so the test is conservative for large faces and tightens as they shrink.
@@ -248,8 +252,10 @@ def _refine_near(mesh: trimesh.Trimesh, samples: np.ndarray, radius: float, max_
             return marked
 
         v, f = _split_edges(v, f, split_edge)
+        d = tree.query(v, distance_upper_bound=2 * radius)[0]
+        active = (d[f] < np.inf).any(axis=1)
         for _ in range(8):
-            f, n = _flip_pass(v, f)
+            f, n = _flip_pass(v, f, active)
             if not n:
                 break
     return trimesh.Trimesh(v, f, process=False)

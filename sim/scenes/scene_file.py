@@ -13,7 +13,7 @@ from typing import Annotated
 import numpy as np
 import trimesh
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, model_validator
+from pydantic import AllowInfNan, BaseModel, ConfigDict, Field, Strict, ValidationError, model_validator
 from scipy.spatial.transform import Rotation
 
 from sim.scenes.catalog import Blueprint, assemble_scene
@@ -30,8 +30,9 @@ class SceneError(ValueError):
     """An invalid scene: the message names the file and the field."""
 
 
-Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
-Unit = Annotated[float, Field(ge=0.0, le=1.0)]
+Num = Annotated[float, Strict(), AllowInfNan(False)]  # a finite int or float; no "1.0" strings, no booleans
+Vec3 = tuple[Num, Num, Num]
+Unit = Annotated[Num, Field(ge=0.0, le=1.0)]
 
 
 class _Strict(BaseModel):
@@ -44,7 +45,7 @@ class PoseSpec(_Strict):
 
 
 class DrawingSpec(_Strict):
-    width: Annotated[FiniteFloat, Field(ge=0.005, le=0.05)]
+    width: Annotated[Num, Field(ge=0.005, le=0.05)]
     polylines: Annotated[list[Annotated[list[Vec3], Field(min_length=2)]], Field(min_length=1)]
 
 
@@ -109,7 +110,8 @@ def read_scene_spec(path: str | Path) -> SceneSpec:
 def _load_mesh(path: str | Path, spec: SceneSpec) -> trimesh.Trimesh:
     mesh_path = (Path(path).parent / spec.mesh).resolve()
     if mesh_path.suffix.lower() not in MESH_SUFFIXES:
-        raise SceneError(f"{path}: mesh: unsupported format {mesh_path.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}")
+        raise SceneError(f"{path}: mesh: unsupported format {mesh_path.suffix!r}; "
+                         f"use one of {', '.join(MESH_SUFFIXES)}")
     if not mesh_path.is_file():
         raise SceneError(f"{path}: mesh: file not found: {mesh_path}")
     try:
@@ -120,6 +122,7 @@ def _load_mesh(path: str | Path, spec: SceneSpec) -> trimesh.Trimesh:
         raise SceneError(f"{path}: mesh: {mesh_path} has no triangles")
     if not np.isfinite(mesh.vertices).all():
         raise SceneError(f"{path}: mesh: {mesh_path} has non-finite vertex coordinates")
+    mesh.fix_normals()  # consistent outward winding: paint only goes on the side facing the line
     extent = float(np.max(mesh.extents))
     if extent > MAX_EXTENT:
         raise SceneError(f"{path}: mesh: {mesh_path} is {extent:g} units across; meshes must be in metres")
@@ -137,10 +140,13 @@ def load_scene_file(path: str | Path) -> Scene:
             j = int(np.argmax(d))
             raise SceneError(f"{path}: drawing.polylines[{i}][{j}]: point {line[j].tolist()} is {d[j]:.3f} m "
                              f"from the mesh surface (at most {MAX_OFF_SURFACE} m; object frame, metres)")
-        dense = resample_polyline(line, 0.005)
-        if closest_points(mesh, dense)[1].max() > MAX_OFF_SURFACE:
-            raise SceneError(f"{path}: drawing.polylines[{i}]: a segment leaves the surface by more than "
-                             f"{MAX_OFF_SURFACE} m between its points; add points along the surface")
+        dense = [resample_polyline(line[j:j + 2], 0.005) for j in range(len(line) - 1)]
+        seg = np.repeat(np.arange(len(dense)), [len(q) for q in dense])
+        far = closest_points(mesh, np.vstack(dense))[1] > MAX_OFF_SURFACE
+        if far.any():
+            j = int(seg[np.argmax(far)])
+            raise SceneError(f"{path}: drawing.polylines[{i}][{j}:{j + 2}]: the segment leaves the surface by more "
+                             f"than {MAX_OFF_SURFACE} m between its points; add points along the surface")
         if np.linalg.norm(np.diff(line, axis=0), axis=1).sum() < spec.drawing.width:
             raise SceneError(f"{path}: drawing.polylines[{i}]: shorter than the line width")
     camera = None

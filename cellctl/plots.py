@@ -1,0 +1,49 @@
+"""Pictures of a scan: viewpoints and covered/missed ground-truth voxels (the paper's Table III)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from planners.clouds import voxel_keys
+
+
+def coverage_figure(path: str | Path, gt: np.ndarray, recon: np.ndarray, viewpoints: np.ndarray, voxel: float,
+                    surface: np.ndarray | None = None, title: str = "") -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys_gt = voxel_keys(gt.astype(np.float64), voxel)
+    uniq, first = np.unique(keys_gt, return_index=True)
+    centers = (np.floor(gt[first] / voxel) + 0.5) * voxel
+    hit = np.isin(uniq, voxel_keys(recon.astype(np.float64), voxel)) if len(recon) else np.zeros(len(uniq), bool)
+    vp = np.asarray(viewpoints).reshape(-1, 3)
+    fig = plt.figure(figsize=(12, 4.2))
+    for i, (elev, azim) in enumerate([(90, -90), (20, -60), (20, 120)]):
+        ax = fig.add_subplot(1, 3, i + 1, projection="3d")
+        if surface is not None and len(surface):
+            s = surface[:: max(1, len(surface) // 4000)]
+            ax.scatter(s[:, 0], s[:, 1], s[:, 2], s=0.3, c="0.75", alpha=0.4)
+        ax.scatter(*centers[hit].T, s=4, c="tab:green", label=f"covered {hit.sum()}")
+        ax.scatter(*centers[~hit].T, s=6, c="tab:red", label=f"missed {(~hit).sum()}")
+        if len(vp):
+            ax.plot(vp[:, 0], vp[:, 1], vp[:, 2], "-o", c="magenta", ms=3, lw=1)
+            ax.text(*vp[0], "0", fontsize=7)
+        allp = np.vstack([centers, vp]) if len(vp) else centers
+        mid = (allp.max(0) + allp.min(0)) / 2
+        r = (allp.max(0) - allp.min(0)).max() / 2 + 0.02
+        ax.set_xlim(mid[0] - r, mid[0] + r)
+        ax.set_ylim(mid[1] - r, mid[1] + r)
+        ax.set_zlim(mid[2] - r, mid[2] + r)
+        ax.view_init(elev=elev, azim=azim)
+        ax.set_xlabel("x")
+        ax.set_ylabel("y")
+        if i == 0:
+            ax.legend(loc="upper left", fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
