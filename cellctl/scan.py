@@ -6,6 +6,7 @@ until the planner says stop. Planning, capture, motion planning and motion are t
 from __future__ import annotations
 
 import time
+import traceback
 from dataclasses import asdict, dataclass, field
 from typing import Callable
 
@@ -146,8 +147,10 @@ class ScanJob:
             res.motion_s += motion_s
             initial_pose = self.arm.camera_pose()
             self._explore(res, initial_pose)
-        except (ScanError, DeviceError, Unreachable, ValueError, RuntimeError) as e:
+        except Exception as e:  # noqa: BLE001 - any failure ends the scan, never loses what was recorded
             res.error = f"{type(e).__name__}: {e}"
+            if not isinstance(e, (ScanError, DeviceError, Unreachable, ValueError)):
+                res.error += "\n" + traceback.format_exc(limit=6)
             res.terminated_by = res.terminated_by or "error"
         finally:
             cov = coverage(self.drawing.xyz, gt_points, self.pcfg.coverage_voxel_m)

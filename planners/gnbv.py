@@ -12,7 +12,7 @@ from planners import nbv
 from planners.base import ScanState, ViewPlan
 from planners.config import NBVConfig
 from planners.grid import frontier_clusters
-from planners.views import look_at_rotations, poses_from, sphere_lattice, surface_normal
+from planners.views import look_at_rotations, poses_from, sphere_lattice
 
 
 class GuidedNBV:
@@ -33,6 +33,8 @@ class GuidedNBV:
         grid = state.grid
         labels, n = frontier_clusters(grid.frontier(), self.cfg.min_frontier_cluster)
         ijk = np.argwhere(labels > 0)
+        if n == 0:
+            return np.zeros((0, 3)), ijk, np.zeros(0, int), np.zeros(0, bool), np.zeros((0, 3))
         lab = labels[ijk[:, 0], ijk[:, 1], ijk[:, 2]] - 1
         centers = grid.centers(ijk)
         counts = np.bincount(lab, minlength=n)
@@ -62,7 +64,7 @@ class GuidedNBV:
         order = np.argsort(np.linalg.norm(cents - cam, axis=1)) if len(cents) else np.zeros(0, int)
         for c in order[usable[order]][:4]:
             target = cents[c]
-            normal = surface_normal(state.surface.xyz, target, 0.03, cam)
+            normal = nbv.outward_normal(grid, state.surface.xyz, target)
             eyes = target + self._lattice
             eyes = eyes[nbv.feasible_eyes(grid, eyes, target, normal, cfg)]
             if len(eyes) == 0:

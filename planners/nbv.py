@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from planners import raycast
 from planners.config import NBVConfig
 from planners.grid import OccupancyGrid
-from planners.views import ray_bundle
+from planners.views import ray_bundle, surface_normal
 
 
 def feature_probability(grid: OccupancyGrid, frontier_ijk: np.ndarray, cfg: NBVConfig) -> tuple[np.ndarray, tuple]:
@@ -109,3 +109,19 @@ def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, nor
                                            grid.occupied.reshape(-1).view(np.uint8))
         ok[idx[blocked]] = False
     return ok
+
+
+def outward_normal(grid: OccupancyGrid, surface_xyz: np.ndarray, target: np.ndarray,
+                   radius: float = 0.03) -> np.ndarray | None:
+    """Surface normal at the target, pointing to the side the camera has seen as free space (the
+    viewpoint that last looked is not necessarily the one that saw this patch)."""
+    n = surface_normal(surface_xyz, target, radius, target + 1.0)
+    if n is None:
+        return None
+    steps = np.arange(2, 6)[:, None] * grid.voxel
+    ijk_p, in_p = grid.index_of(target + steps * n)
+    ijk_m, in_m = grid.index_of(target - steps * n)
+    free = grid.free
+    fp = free[tuple(ijk_p[in_p].T)].sum() if in_p.any() else 0
+    fm = free[tuple(ijk_m[in_m].T)].sum() if in_m.any() else 0
+    return n if fp >= fm else -n

@@ -50,15 +50,21 @@ def sphere_lattice(radius: float, inner: float, spacing: float) -> np.ndarray:
     return g[(r <= radius) & (r >= inner)]
 
 
-def surface_normal(points: np.ndarray, center: np.ndarray, radius: float, toward: np.ndarray) -> np.ndarray | None:
+def surface_normal(points: np.ndarray, center: np.ndarray, radius: float, toward: np.ndarray,
+                   max_curvature: float = 0.05) -> np.ndarray | None:
     """PCA normal of the surface points near `center`, flipped to face `toward` (a viewpoint that saw
-    them). None when too few points."""
+    them). None when too few points or where the patch is not a plane (an edge or corner, whose
+    "normal" would forbid exactly the views that see round it): surface variation
+    λ_min / Σλ above `max_curvature`."""
     d2 = np.sum((points - center) ** 2, axis=1)
     near = points[d2 < radius * radius]
     if len(near) < 10:
         return None
     c = near - near.mean(axis=0)
-    _, _, vt = np.linalg.svd(c.astype(np.float64), full_matrices=False)
+    _, sv, vt = np.linalg.svd(c.astype(np.float64), full_matrices=False)
+    ev = sv ** 2
+    if ev[2] / max(ev.sum(), 1e-18) > max_curvature:
+        return None
     n = vt[2]
     if np.dot(n, toward - center) < 0:
         n = -n
