@@ -168,7 +168,8 @@ class ScanJob:
             T = self.arm.camera_pose()
             t1 = time.perf_counter()
             cloud = self._process(frame, T)
-            state = ScanState(k, self.grid, self.surface, self.drawing, cloud, T, initial_pose, self.K, self.image_size)
+            state = ScanState(k, self.grid, self.surface, self.drawing, cloud, T, initial_pose, self.K, self.image_size,
+                              np.array(res.viewpoints + [T[:3, 3].tolist()]))
             plan = self.planner.next_view(state)
             t2 = time.perf_counter()
             rec = StepRecord(k, T[:3, 3].round(4).tolist(), len(self.surface), len(self.drawing), len(plan.frontier),

@@ -22,6 +22,7 @@ class ScanState:
     initial_pose: np.ndarray  # T_base_cam of the first view
     K: np.ndarray  # 3x3 intrinsics of the camera image
     image_size: tuple[int, int]  # (width, height)
+    viewpoints: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # camera positions so far
 
 
 @dataclass

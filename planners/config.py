@@ -69,7 +69,9 @@ class NBVConfig(_Strict):
     max_range_m: float = Field(0.8, gt=0.1, le=5)
     min_frontier_cluster: int = Field(3, ge=1, le=1000)
     max_steps: int = Field(12, ge=1, le=200)
-    max_target_visits: int = Field(2, ge=1, le=20, description="give up a frontier cluster after this many views at it")
+    revisit_angle_deg: float = Field(25.0, ge=0, le=90,
+                                     description="no candidate within this angle (seen from the target) of a past view")
+    max_target_visits: int = Field(3, ge=1, le=20, description="give up a frontier cluster after this many views at it")
     ik_candidates: int = Field(40, ge=1, le=10_000, description="ranked candidates the runner tries to reach")
 
     @model_validator(mode="after")

@@ -22,6 +22,7 @@ class GuidedNBV:
         self.cfg = cfg
         self._lattice = sphere_lattice(cfg.search_radius_m, cfg.min_standoff_m, cfg.candidate_spacing_m)
         self._targets: list[np.ndarray] = []  # f̂ of every plan handed out
+        self._target_steps: list[int] = []  # the step each was planned at
         self._given_up: list[np.ndarray] = []  # targets that proved unreachable or without gain
 
     def reject(self, plan: ViewPlan) -> None:
@@ -51,6 +52,13 @@ class GuidedNBV:
             usable &= visits < self.cfg.max_target_visits
         return cents, ijk, lab, usable, centers
 
+    def _views_of(self, target: np.ndarray, state: ScanState) -> np.ndarray:
+        """Viewpoints already spent on (nearly) this target: seeing it again from there is pointless."""
+        near = 6.0 * state.grid.voxel
+        idx = [s + 1 for t, s in zip(self._targets, self._target_steps)
+               if s + 1 < len(state.viewpoints) and np.linalg.norm(t - target) < near]
+        return state.viewpoints[idx] if idx else np.zeros((0, 3))
+
     def next_view(self, state: ScanState) -> ViewPlan:
         cfg, grid = self.cfg, state.grid
         t0 = time.perf_counter()
@@ -66,7 +74,7 @@ class GuidedNBV:
             target = cents[c]
             normal = nbv.outward_normal(grid, state.surface.xyz, target)
             eyes = target + self._lattice
-            eyes = eyes[nbv.feasible_eyes(grid, eyes, target, normal, cfg)]
+            eyes = eyes[nbv.feasible_eyes(grid, eyes, target, normal, cfg, self._views_of(target, state))]
             if len(eyes) == 0:
                 self._given_up.append(target)
                 continue
@@ -80,6 +88,7 @@ class GuidedNBV:
                 reason = "quality"
                 continue
             self._targets.append(target)
+            self._target_steps.append(state.step)
             timings["plan_s"] = time.perf_counter() - t0
             return ViewPlan(poses_from(eyes[rank], R[rank]), q[rank], gain[rank], False, "",
                             target=target, frontier=frontier_xyz, timings=timings)

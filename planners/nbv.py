@@ -81,10 +81,11 @@ def quality(gain: np.ndarray, cost: np.ndarray, lam: float) -> np.ndarray:
 
 
 def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, normal: np.ndarray | None,
-                  cfg: NBVConfig) -> np.ndarray:
+                  cfg: NBVConfig, past_views: np.ndarray | None = None) -> np.ndarray:
     """Mask of candidate positions a camera may occupy and see the target from: inside the grid, above
     the floor limit, clear of occupied cells, on the observed side of the surface within the viewing
-    cone, and with no occupied cell on the line of sight."""
+    cone, not a repeat of a past viewing direction onto this target, and with no occupied cell on
+    the line of sight."""
     margin = cfg.clearance_m
     ok = np.all((eyes >= grid.lo + margin) & (eyes <= grid.hi - margin), axis=1)
     ok &= eyes[:, 2] >= cfg.min_camera_z_m
@@ -92,6 +93,12 @@ def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, nor
         v = eyes - target
         cosang = (v @ normal) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
         ok &= cosang >= np.cos(np.deg2rad(cfg.max_view_angle_deg))
+    if past_views is not None and len(past_views) and cfg.revisit_angle_deg > 0:
+        u = eyes - target
+        u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
+        pv = past_views - target
+        pv /= np.maximum(np.linalg.norm(pv, axis=1, keepdims=True), 1e-9)
+        ok &= (u @ pv.T).max(axis=1) < np.cos(np.deg2rad(cfg.revisit_angle_deg))
     occ = np.argwhere(grid.occupied)
     if len(occ) and ok.any() and margin > 0:
         tree = cKDTree(grid.centers(occ))
