@@ -47,3 +47,12 @@ def write_ply(path: Path, cloud: Cloud) -> None:
     pc.colors = o3d.utility.Vector3dVector(cloud.rgb.astype(np.float64) / 255.0)
     if not o3d.io.write_point_cloud(str(path), pc, write_ascii=False):
         raise OSError(f"could not write {path}")
+
+
+def save_png(path: Path, rgb: np.ndarray) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    plt.imsave(path, rgb)

@@ -95,6 +95,7 @@ class ScanJob:
         self.grid = OccupancyGrid(pcfg.grid)
         self.surface = Cloud.empty()
         self.drawing = Cloud.empty()
+        self.first_color: np.ndarray | None = None  # the initial view, for the run folder's picture
         intr = camera.intrinsics
         self.K = intr.matrix()
         self.image_size = (intr.width, intr.height)
@@ -166,6 +167,8 @@ class ScanJob:
             t0 = time.perf_counter()
             frame = self.camera.capture()
             T = self.arm.camera_pose()
+            if self.first_color is None:
+                self.first_color = frame.color
             t1 = time.perf_counter()
             cloud = self._process(frame, T)
             state = ScanState(k, self.grid, self.surface, self.drawing, cloud, T, initial_pose, self.K, self.image_size,

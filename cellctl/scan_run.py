@@ -5,8 +5,11 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from cellctl.artifacts import new_run_dir, write_json, write_ply
+import numpy as np
+
+from cellctl.artifacts import new_run_dir, save_png, write_json, write_ply
 from cellctl.config import CellConfig
+from cellctl.plots import coverage_figure
 from cellctl.recording import ScanRecorder
 from cellctl.scan import ScanJob, ScanResult, StepRecord
 from planners.config import load_planners_config
@@ -41,6 +44,11 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
     try:
         write_ply(run_dir / "drawing.ply", job.drawing)
         write_ply(run_dir / "surface.ply", job.surface)
+        coverage_figure(run_dir / "coverage.png", scene.gt_points, job.drawing.xyz, np.array(result.viewpoints),
+                        pcfg.coverage_voxel_m, job.surface.xyz,
+                        f"{scene.name} / {planner}: {result.steps} views, coverage {result.coverage_percent:.1f} %")
+        if job.first_color is not None:
+            save_png(run_dir / "view0.png", job.first_color)
     finally:
         write_json(run_dir / "result.json", {"schema_version": 1, "cell_id": cfg.cell_id,
                                              "scene_ref": scene_ref, **result.to_dict()})

@@ -1,0 +1,119 @@
+"""End-to-end scans in the pybullet twin, sensor noise on: camera -> clouds -> grid -> G-NBV -> IK ->
+trajectory -> twin, and the run folder a user gets."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cellctl.config import load_cell_config
+from cellctl.scan_run import run_scan_in_twin
+from sim.scenes import load_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def cell():
+    return load_cell_config(None)
+
+
+def _scan(cell, scene, tmp_path, **kw):
+    cfg, path = cell
+    return run_scan_in_twin(cfg, path, scene, "gnbv", out=str(tmp_path), progress=False, **kw)
+
+
+@pytest.mark.parametrize("scene", ["smooth_cylinder", "round_tank"])
+def test_gnbv_covers_the_drawing(cell, scene, tmp_path):
+    result, run_dir = _scan(cell, scene, tmp_path)
+    assert result.error is None
+    assert result.coverage_percent >= 95.0, result
+    assert result.terminated_by in ("quality", "frontier")
+    assert 1 <= result.steps <= 12
+    assert result.planning_s > 0 and result.motion_s > 0 and result.capture_s > 0
+    for name in ("result.json", "drawing.ply", "surface.ply", "scan.rrd"):
+        assert (run_dir / name).stat().st_size > 0, name
+    saved = json.loads((run_dir / "result.json").read_text())
+    assert saved["coverage_percent"] == result.coverage_percent and saved["steps"] == result.steps
+    assert len(saved["viewpoints"]) == result.steps
+
+
+def test_branched_drawing_reconstructed_to_all_four_extremities(cell, tmp_path):
+    import open3d as o3d
+
+    result, run_dir = _scan(cell, "branched_cylinder", tmp_path)
+    assert result.error is None
+    drawing = np.asarray(o3d.io.read_point_cloud(str(run_dir / "drawing.ply")).points)
+    ends = load_scene("branched_cylinder").extremities
+    assert len(ends) == 4
+    gap = np.linalg.norm(drawing[None, :, :] - ends[:, None, :], axis=2).min(axis=1)
+    assert np.all(gap < 0.015), f"distance from each extremity to the reconstruction: {gap}"
+
+
+def test_user_yaml_scene_with_obj_mesh_scans(cell, tmp_path):
+    import trimesh
+
+    mesh = trimesh.creation.box([0.30, 0.40, 0.12])
+    mesh = mesh.subdivide_to_size(0.03)
+    (tmp_path / "crate.obj").write_text(trimesh.exchange.obj.export_obj(mesh))
+    (tmp_path / "crate.yaml").write_text(
+        "name: crate\nmesh: crate.obj\npose: {xyz: [0.5, 0.0, 0.06], rpy_deg: [0, 0, 10]}\n"
+        "drawing:\n  width: 0.02\n  polylines:\n    - [[-0.1, -0.17, 0.06], [0.0, 0.0, 0.06], [0.1, 0.17, 0.06]]\n")
+    result, run_dir = _scan(cell, str(tmp_path / "crate.yaml"), tmp_path / "runs")
+    assert result.error is None and result.scene == "crate"
+    assert result.coverage_percent >= 90.0
+
+
+def test_invalid_scene_file_is_refused_naming_the_field(tmp_path):
+    (tmp_path / "bad.yaml").write_text("name: bad\nmesh: nowhere.obj\npose: {xyz: [0.5, 0, 0], rpy_deg: [0, 0, 0]}\n"
+                                       "drawing: {width: wide, polylines: [[[0, 0, 0], [0.1, 0, 0]]]}\n")
+    out = subprocess.run([sys.executable, "-m", "cellctl.cli", "scan", "--scene", str(tmp_path / "bad.yaml"),
+                          "--out", str(tmp_path / "runs")], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert out.returncode == 2
+    assert "bad.yaml" in out.stderr and "drawing.width" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_invalid_cell_config_is_refused_naming_the_field(tmp_path):
+    (tmp_path / "cell.yaml").write_text("cell_id: a\nmotion: {speed_factor: 3}\n")
+    out = subprocess.run([sys.executable, "-m", "cellctl.cli", "scan", "--scene", "smooth_cylinder",
+                          "--config", str(tmp_path / "cell.yaml")], capture_output=True, text=True, cwd=ROOT,
+                         timeout=120)
+    assert out.returncode == 2
+    assert "cell.yaml: motion.speed_factor" in out.stderr
+
+
+def test_one_capture_gives_grid_states_and_a_frontier(cell):
+    """After the first view of smooth_cylinder: the painted surface is occupied, the air in front of
+    the camera free, the pipe's inside unknown, and the drawing's frontier is not empty."""
+    from cellctl.scan import ScanJob
+    from planners.config import load_planners_config
+    from planners.metrics import coverage
+    from sim.twin import Twin
+
+    cfg, path = cell
+    pcfg = load_planners_config(path.parent / cfg.planners_config)
+    scene = load_scene("smooth_cylinder")
+    with Twin(scene, cfg.twin) as twin:
+        twin.arm.reset(cfg.twin.home_q)
+        job = ScanJob(twin.arm, twin.camera, "gnbv", pcfg, cfg.motion)
+        job.move_to_initial(scene.initial_view_candidates)
+        T = twin.arm.camera_pose()
+        job._process(twin.camera.capture(), T)
+    g = job.grid
+    seen = job.drawing.xyz
+    assert len(seen) > 100
+    ijk, inside = g.index_of(seen)
+    occupied_share = g.occupied[tuple(ijk[inside].T)].mean()
+    assert occupied_share > 0.8
+    # halfway between the camera and a drawing point: free
+    mid = (T[:3, 3] + seen.mean(axis=0)) / 2
+    assert g.free[tuple(g.index_of(mid[None])[0][0])]
+    # the pipe's axis, never observed: unknown
+    axis_point = scene.object_mesh.bounds.mean(axis=0)
+    assert g.unknown[tuple(g.index_of(axis_point[None])[0][0])]
+    assert g.frontier().sum() > 0
+    assert coverage(seen, scene.gt_points, 0.01).percent < 90.0  # one view does not see it all
