@@ -57,6 +57,7 @@ class StepRecord:
     tracking_error_rad: float = 0.0
     chosen_rank: int | None = None
     replans: int = 0
+    coverage_percent: float | None = None  # against ground truth, when the scene has one (twin)
 
 
 @dataclass
@@ -95,6 +96,7 @@ class ScanJob:
         self.grid = OccupancyGrid(pcfg.grid)
         self.surface = Cloud.empty()
         self.drawing = Cloud.empty()
+        self.empty_frames = 0
         self.first_color: np.ndarray | None = None  # the initial view, for the run folder's picture
         intr = camera.intrinsics
         self.K = intr.matrix()
@@ -129,7 +131,13 @@ class ScanJob:
         g = self.pcfg.grid
         cloud = clouds.frame_to_base_cloud(frame.color, frame.depth, self.K, T_base_cam)
         if len(cloud) == 0:
-            raise DeviceError("camera frame has no valid depth (all NaN, zero or out of range)")
+            # A view of nothing (everything nearer than the sensor's minimum range, or empty space)
+            # teaches nothing but is not a fault; several in a row are.
+            self.empty_frames += 1
+            if self.empty_frames >= 3:
+                raise DeviceError("camera returned 3 frames in a row with no valid depth (all NaN, zero or out of range)")
+            return cloud
+        self.empty_frames = 0
         self.surface = clouds.concatenate(self.surface, cloud, g.surface_voxel_m)
         c = self.pcfg.color
         paint = clouds.color_mask(cloud.rgb, c.hue_center_deg, c.hue_halfwidth_deg, c.s_min, c.v_min)
@@ -147,7 +155,7 @@ class ScanJob:
             res.motion_planning_s += ik_s
             res.motion_s += motion_s
             initial_pose = self.arm.camera_pose()
-            self._explore(res, initial_pose)
+            self._explore(res, initial_pose, gt_points)
         except Exception as e:  # noqa: BLE001 - any failure ends the scan, never loses what was recorded
             res.error = f"{type(e).__name__}: {e}"
             if not isinstance(e, (ScanError, DeviceError, Unreachable, ValueError)):
@@ -161,8 +169,9 @@ class ScanJob:
             res.step_s = res.planning_s / res.steps if res.steps else 0.0
         return res
 
-    def _explore(self, res: ScanResult, initial_pose: np.ndarray) -> None:
+    def _explore(self, res: ScanResult, initial_pose: np.ndarray, gt_points: np.ndarray | None) -> None:
         cfg = self.pcfg.nbv
+        last_plan: ViewPlan | None = None
         for k in range(cfg.max_steps):
             t0 = time.perf_counter()
             frame = self.camera.capture()
@@ -171,12 +180,16 @@ class ScanJob:
                 self.first_color = frame.color
             t1 = time.perf_counter()
             cloud = self._process(frame, T)
+            if len(cloud) == 0 and last_plan is not None:
+                self.planner.reject(last_plan)  # that view saw nothing: do not aim there again
             state = ScanState(k, self.grid, self.surface, self.drawing, cloud, T, initial_pose, self.K, self.image_size,
                               np.array(res.viewpoints + [T[:3, 3].tolist()]))
             plan = self.planner.next_view(state)
             t2 = time.perf_counter()
             rec = StepRecord(k, T[:3, 3].round(4).tolist(), len(self.surface), len(self.drawing), len(plan.frontier),
                              len(plan.poses), _first(plan.quality), _first(plan.gain), t2 - t1, t1 - t0)
+            if gt_points is not None and len(gt_points):
+                rec.coverage_percent = round(coverage(self.drawing.xyz, gt_points, self.pcfg.coverage_voxel_m).percent, 2)
             res.viewpoints.append(T[:3, 3].tolist())
             res.records.append(rec)
             res.capture_s += rec.capture_s
@@ -186,6 +199,7 @@ class ScanJob:
                                        self.drawing.xyz)
             if not plan.stop:
                 plan = self._go(plan, state, rec)
+            last_plan = plan
             res.planning_s += rec.planning_s
             res.motion_planning_s += rec.ik_s
             res.motion_s += rec.motion_s

@@ -10,20 +10,26 @@ import numpy as np
 
 @dataclass
 class Cloud:
-    """Points (N,3) float32 with colours (N,3) uint8; never Python lists."""
+    """Points (N,3) float32 with colours (N,3) uint8 and the sensor position that saw each point
+    (N,3) float32, which orients normals; never Python lists."""
 
     xyz: np.ndarray
     rgb: np.ndarray
+    origin: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.origin is None:
+            self.origin = np.full(self.xyz.shape, np.nan, np.float32)
 
     @staticmethod
     def empty() -> "Cloud":
-        return Cloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8))
+        return Cloud(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros((0, 3), np.float32))
 
     def __len__(self) -> int:
         return len(self.xyz)
 
     def select(self, mask: np.ndarray) -> "Cloud":
-        return Cloud(self.xyz[mask], self.rgb[mask])
+        return Cloud(self.xyz[mask], self.rgb[mask], self.origin[mask])
 
 
 def depth_to_camera_points(depth: np.ndarray, K: np.ndarray, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -55,7 +61,8 @@ def frame_to_base_cloud(color: np.ndarray, depth: np.ndarray, K: np.ndarray, T_b
         raise ValueError("camera pose contains NaN/inf")
     pts, idx = depth_to_camera_points(depth, K, stride)
     rgb = color.reshape(-1, 3)[idx]
-    return Cloud(transform_points(T_base_cam, pts), rgb)
+    origin = np.broadcast_to(T_base_cam[:3, 3].astype(np.float32), pts.shape)
+    return Cloud(transform_points(T_base_cam, pts), rgb, origin)
 
 
 def voxel_keys(xyz: np.ndarray, voxel: float) -> np.ndarray:
@@ -74,7 +81,8 @@ def voxel_dedup(cloud: Cloud, voxel: float) -> Cloud:
 
 def concatenate(total: Cloud, new: Cloud, voxel: float) -> Cloud:
     """Eq. (1): C_total,k = C_total,k-1 ∪ C_k, voxel de-duplicated (old points win)."""
-    merged = Cloud(np.concatenate([total.xyz, new.xyz]), np.concatenate([total.rgb, new.rgb]))
+    merged = Cloud(np.concatenate([total.xyz, new.xyz]), np.concatenate([total.rgb, new.rgb]),
+                   np.concatenate([total.origin, new.origin]))
     return voxel_dedup(merged, voxel)
 
 

@@ -31,6 +31,7 @@ class GridConfig(_Strict):
     l_miss: float = Field(-0.4, lt=0, ge=-5)
     l_min: float = Field(-2.0, lt=0, ge=-20)
     l_max: float = Field(3.5, gt=0, le=20)
+    shadow_depth_m: float = Field(0.05, ge=0, le=0.5, description="depth behind each hit marked as shadow")
     integrate_stride_px: int = Field(2, ge=1, le=16)
     surface_voxel_m: float = Field(0.002, gt=0, le=0.02)  # de-duplication of C_total / D_total
 
@@ -59,16 +60,22 @@ class NBVConfig(_Strict):
     search_radius_m: float = Field(0.42, gt=0.05, le=1.5, description="outer radius of the candidate sphere")
     min_standoff_m: float = Field(0.25, ge=0.1, le=1.0, description="inner radius: the D435 needs distance")
     candidate_spacing_m: float = Field(0.04, ge=0.005, le=0.3)
-    max_view_angle_deg: float = Field(70.0, gt=0, le=90, description="candidates within this angle of the surface normal")
+    max_view_angle_deg: float = Field(60.0, gt=0, le=90, description="candidates within this angle of the surface normal")
+    relaxed_view_angle_deg: float = Field(85.0, gt=0, le=90,
+                                          description="the cone tried when no square-on view gains anything")
     min_camera_z_m: float = Field(0.12, description="candidates below this height are not generated")
     clearance_m: float = Field(0.06, ge=0, le=0.5, description="candidates this close to occupied cells are dropped")
     unknown_visibility: float = Field(0.95, gt=0, le=1,
-                                      description="P[o=0] of an unknown cell in eq. 8 (paper: 0.5)")
+                                      description="P[o=0] in eq. 8 of an unknown cell no ray has ended before")
+    shadow_visibility: float = Field(0.5, gt=0, le=1,
+                                     description="P[o=0] in eq. 8 of an unknown cell behind an observed surface (paper: 0.5)")
     rays_w: int = Field(48, ge=4, le=400)
     rays_h: int = Field(28, ge=3, le=300)
     max_range_m: float = Field(0.8, gt=0.1, le=5)
     min_frontier_cluster: int = Field(3, ge=1, le=1000)
     max_steps: int = Field(12, ge=1, le=200)
+    aim_ahead_m: float = Field(0.0, ge=0, le=0.5,
+                               description="look this far past the frontier centroid along the drawing (0: at it, as the paper)")
     revisit_angle_deg: float = Field(25.0, ge=0, le=90,
                                      description="no candidate within this angle (seen from the target) of a past view")
     max_target_visits: int = Field(3, ge=1, le=20, description="give up a frontier cluster after this many views at it")

@@ -52,12 +52,42 @@ class GuidedNBV:
             usable &= visits < self.cfg.max_target_visits
         return cents, ijk, lab, usable, centers
 
+    def _aim_point(self, state: ScanState, target: np.ndarray) -> np.ndarray:
+        """Where the candidates look: the frontier centroid, or a little past it in the direction the
+        drawing leaves the explored part, so a view spends less of its image on what is known."""
+        ahead = self.cfg.aim_ahead_m
+        if ahead <= 0 or len(state.drawing) == 0:
+            return target
+        d2 = np.sum((state.drawing.xyz - target) ** 2, axis=1)
+        near = state.drawing.xyz[d2 < 0.1 ** 2]
+        if len(near) < 10:
+            return target
+        d = target - near.mean(axis=0)
+        n = np.linalg.norm(d)
+        return target + ahead * d / n if n > 0.01 else target
+
     def _views_of(self, target: np.ndarray, state: ScanState) -> np.ndarray:
         """Viewpoints already spent on (nearly) this target: seeing it again from there is pointless."""
         near = 6.0 * state.grid.voxel
         idx = [s + 1 for t, s in zip(self._targets, self._target_steps)
                if s + 1 < len(state.viewpoints) and np.linalg.norm(t - target) < near]
         return state.viewpoints[idx] if idx else np.zeros((0, 3))
+
+    def _score(self, state: ScanState, target: np.ndarray, normal: np.ndarray | None, cone_deg: float,
+               weights, p_free: np.ndarray):
+        """Ranked (poses, Q, gain) of the candidates around one target, or None if none is worth it."""
+        cfg, grid = self.cfg, state.grid
+        eyes = target + self._lattice
+        eyes = eyes[nbv.feasible_eyes(grid, eyes, target, normal, cfg, self._views_of(target, state), cone_deg)]
+        if len(eyes) == 0:
+            return None
+        R = look_at_rotations(eyes, self._aim_point(state, target))
+        gain = nbv.gains(grid, eyes, R, weights, p_free, state.K, state.image_size, cfg)
+        q = nbv.quality(gain, np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1), cfg.lam)
+        rank = np.argsort(-q, kind="stable")
+        if gain.max() < cfg.min_gain or q[rank[0]] < cfg.delta_q:
+            return None
+        return poses_from(eyes[rank], R[rank]), q[rank], gain[rank]
 
     def next_view(self, state: ScanState) -> ViewPlan:
         cfg, grid = self.cfg, state.grid
@@ -70,27 +100,25 @@ class GuidedNBV:
         # Nearest usable cluster first; one whose best view gains nothing is given up and the next
         # nearest tried, so a single unresolvable corner does not end the scan.
         order = np.argsort(np.linalg.norm(cents - cam, axis=1)) if len(cents) else np.zeros(0, int)
+        p_free = nbv.visibility_field(grid, cfg)
         for c in order[usable[order]][:4]:
             target = cents[c]
-            normal = nbv.outward_normal(grid, state.surface.xyz, target)
-            eyes = target + self._lattice
-            eyes = eyes[nbv.feasible_eyes(grid, eyes, target, normal, cfg, self._views_of(target, state))]
-            if len(eyes) == 0:
-                self._given_up.append(target)
-                continue
-            R = look_at_rotations(eyes, target)
-            w = nbv.cell_weights(grid, ijk[lab == c], cfg)
-            gain = nbv.gains(grid, eyes, R, w, nbv.visibility_field(grid, cfg), state.K, state.image_size, cfg)
-            q = nbv.quality(gain, np.linalg.norm(eyes - cam, axis=1), cfg.lam)
-            rank = np.argsort(-q, kind="stable")
-            if gain.max() < cfg.min_gain or q[rank[0]] < cfg.delta_q:
+            normal = nbv.outward_normal(state.surface, target)
+            weights = nbv.cell_weights(grid, ijk[lab == c], cfg)
+            # Square-on views first (the D435 returns nothing at grazing incidence); only if none of
+            # them gains anything, the relaxed cone that can look round an edge.
+            for cone in (cfg.max_view_angle_deg, cfg.relaxed_view_angle_deg):
+                scored = self._score(state, target, normal, cone, weights, p_free)
+                if scored is not None:
+                    break
+            if scored is None:
                 self._given_up.append(target)
                 reason = "quality"
                 continue
+            poses, q, gain = scored
             self._targets.append(target)
             self._target_steps.append(state.step)
             timings["plan_s"] = time.perf_counter() - t0
-            return ViewPlan(poses_from(eyes[rank], R[rank]), q[rank], gain[rank], False, "",
-                            target=target, frontier=frontier_xyz, timings=timings)
+            return ViewPlan(poses, q, gain, False, "", target=target, frontier=frontier_xyz, timings=timings)
         timings["plan_s"] = time.perf_counter() - t0
         return ViewPlan(empty, np.zeros(0), np.zeros(0), True, reason, frontier=frontier_xyz, timings=timings)

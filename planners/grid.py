@@ -23,6 +23,7 @@ class OccupancyGrid:
         self.hi = self.lo + np.asarray(self.shape) * self.voxel
         self.logodds = np.zeros(self.shape, dtype=np.float32)
         self.drawing = np.zeros(self.shape, dtype=bool)
+        self.shadow = np.zeros(self.shape, dtype=bool)  # unknown cells that some ray ended just before
         self._marks = np.zeros(int(np.prod(self.shape)), dtype=np.int8)
 
     # --- geometry -----------------------------------------------------------------------------
@@ -44,12 +45,13 @@ class OccupancyGrid:
         marks[:] = 0
         raycast.mark_scan(np.ascontiguousarray(origin, dtype=np.float64), np.ascontiguousarray(points, dtype=np.float64),
                           self.lo, self.voxel, np.asarray(self.shape, dtype=np.int64),
-                          float(truncation_voxels), marks)
+                          float(truncation_voxels), float(self.cfg.shadow_depth_m), marks)
         flat = self.logodds.reshape(-1)
         free = marks == raycast.FREE
         hit = marks == raycast.HIT
         flat[free] = np.maximum(flat[free] + self.cfg.l_miss, self.cfg.l_min)
         flat[hit] = np.minimum(flat[hit] + self.cfg.l_hit, self.cfg.l_max)
+        self.shadow.reshape(-1)[marks == raycast.SHADOW] = True
 
     def set_drawing(self, drawing_xyz: np.ndarray) -> None:
         """Label the cells that hold drawing points (recomputed from D_total every step)."""

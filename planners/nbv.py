@@ -9,6 +9,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from planners import raycast
+from planners.clouds import Cloud
 from planners.config import NBVConfig
 from planners.grid import OccupancyGrid
 from planners.views import ray_bundle, surface_normal
@@ -55,7 +56,9 @@ def _entropy_decrease(L: np.ndarray, l_hit: float, l_miss: float, l_min: float, 
 def visibility_field(grid: OccupancyGrid, cfg: NBVConfig) -> np.ndarray:
     """P[o_r = 0] per cell for eq. 8, flat; unknown cells get the configured prior."""
     p_free = (1.0 / (1.0 + np.exp(grid.logodds))).astype(np.float32)  # 1 - sigmoid(L)
-    p_free[grid.unknown] = cfg.unknown_visibility
+    unknown = grid.unknown
+    p_free[unknown] = cfg.unknown_visibility
+    p_free[unknown & grid.shadow] = cfg.shadow_visibility
     return p_free.reshape(-1)
 
 
@@ -81,7 +84,7 @@ def quality(gain: np.ndarray, cost: np.ndarray, lam: float) -> np.ndarray:
 
 
 def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, normal: np.ndarray | None,
-                  cfg: NBVConfig, past_views: np.ndarray | None = None) -> np.ndarray:
+                  cfg: NBVConfig, past_views: np.ndarray | None = None, cone_deg: float | None = None) -> np.ndarray:
     """Mask of candidate positions a camera may occupy and see the target from: inside the grid, above
     the floor limit, clear of occupied cells, on the observed side of the surface within the viewing
     cone, not a repeat of a past viewing direction onto this target, and with no occupied cell on
@@ -92,7 +95,13 @@ def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, nor
     if normal is not None:
         v = eyes - target
         cosang = (v @ normal) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
-        ok &= cosang >= np.cos(np.deg2rad(cfg.max_view_angle_deg))
+        ok &= cosang >= np.cos(np.deg2rad(cfg.max_view_angle_deg if cone_deg is None else cone_deg))
+    if ok.any():
+        # never inside what was seen to be behind a surface (the inside of the object, most likely)
+        ijk, inside = grid.index_of(eyes)
+        behind = np.zeros(len(eyes), dtype=bool)
+        behind[inside] = grid.shadow[tuple(ijk[inside].T)] & grid.unknown[tuple(ijk[inside].T)]
+        ok &= ~behind
     if past_views is not None and len(past_views) and cfg.revisit_angle_deg > 0:
         u = eyes - target
         u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
@@ -118,17 +127,14 @@ def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, nor
     return ok
 
 
-def outward_normal(grid: OccupancyGrid, surface_xyz: np.ndarray, target: np.ndarray,
-                   radius: float = 0.03) -> np.ndarray | None:
-    """Surface normal at the target, pointing to the side the camera has seen as free space (the
-    viewpoint that last looked is not necessarily the one that saw this patch)."""
-    n = surface_normal(surface_xyz, target, radius, target + 1.0)
-    if n is None:
+def outward_normal(surface: Cloud, target: np.ndarray, radius: float = 0.03) -> np.ndarray | None:
+    """Surface normal at the target, on the side of the sensors that saw the patch (not the camera
+    that happens to be there now). None at edges and corners, or with too few points."""
+    d2 = np.sum((surface.xyz - target) ** 2, axis=1)
+    near = d2 < radius * radius
+    if near.sum() < 10:
         return None
-    steps = np.arange(2, 6)[:, None] * grid.voxel
-    ijk_p, in_p = grid.index_of(target + steps * n)
-    ijk_m, in_m = grid.index_of(target - steps * n)
-    free = grid.free
-    fp = free[tuple(ijk_p[in_p].T)].sum() if in_p.any() else 0
-    fm = free[tuple(ijk_m[in_m].T)].sum() if in_m.any() else 0
-    return n if fp >= fm else -n
+    toward = target + np.nanmean(surface.origin[near] - surface.xyz[near], axis=0)
+    if not np.all(np.isfinite(toward)):
+        return None
+    return surface_normal(surface.xyz[near], target, radius, toward)

@@ -8,6 +8,7 @@ import numpy as np
 
 FREE = np.int8(1)
 HIT = np.int8(2)
+SHADOW = np.int8(3)  # just behind a hit: unseen, and likely solid or occluded
 
 
 @nb.njit(cache=True, inline="always")
@@ -16,9 +17,10 @@ def _flat(i, j, k, ny, nz):
 
 
 @nb.njit(cache=True, parallel=True)
-def mark_scan(origin, points, lo, voxel, shape, truncation, marks):
+def mark_scan(origin, points, lo, voxel, shape, truncation, shadow_depth, marks):
     """Mark the cells one scan touches: HIT where a point lands, FREE along each ray before it
-    (stopping `truncation` cells short of the hit so noise does not carve the surface)."""
+    (stopping `truncation` cells short of the hit so noise does not carve the surface), SHADOW for
+    `shadow_depth` metres behind it."""
     nx, ny, nz = shape[0], shape[1], shape[2]
     n = points.shape[0]
     for r in nb.prange(n):
@@ -44,14 +46,17 @@ def mark_scan(origin, points, lo, voxel, shape, truncation, marks):
         dx /= length
         dy /= length
         dz /= length
-        _traverse_free(ox, oy, oz, dx, dy, dz, tmax_len, lo, voxel, nx, ny, nz, marks)
+        _traverse_mark(ox, oy, oz, dx, dy, dz, 0.0, tmax_len, lo, voxel, nx, ny, nz, marks, FREE)
+        if shadow_depth > 0:
+            _traverse_mark(ox, oy, oz, dx, dy, dz, length + voxel, length + shadow_depth, lo, voxel,
+                           nx, ny, nz, marks, SHADOW)
 
 
 @nb.njit(cache=True, inline="always")
-def _traverse_free(ox, oy, oz, dx, dy, dz, tmax_len, lo, voxel, nx, ny, nz, marks):
-    # enter the grid box first
-    t0 = 0.0
-    t1 = tmax_len
+def _traverse_mark(ox, oy, oz, dx, dy, dz, t_start, t_end, lo, voxel, nx, ny, nz, marks, value):
+    # clip [t_start, t_end] to the grid box first
+    t0 = t_start
+    t1 = t_end
     o = (ox, oy, oz)
     d = (dx, dy, dz)
     n = (nx, ny, nz)
@@ -95,7 +100,7 @@ def _traverse_free(ox, oy, oz, dx, dy, dz, tmax_len, lo, voxel, nx, ny, nz, mark
     while True:
         f = _flat(i, j, k, ny, nz)
         if marks[f] == 0:
-            marks[f] = FREE
+            marks[f] = value
         tn = min(tx, ty, tz)
         if tn >= t1:
             return
@@ -281,7 +286,7 @@ def warmup() -> None:
     lo = np.zeros(3)
     shape = np.array([4, 4, 4], dtype=np.int64)
     marks = np.zeros(64, dtype=np.int8)
-    mark_scan(np.array([0.5, 0.5, 3.5]) * 0.01, np.array([[0.02, 0.02, 0.005]]), lo, 0.01, shape, 1.0, marks)
+    mark_scan(np.array([0.5, 0.5, 3.5]) * 0.01, np.array([[0.02, 0.02, 0.005]]), lo, 0.01, shape, 1.0, 0.02, marks)
     view_gains(np.array([[0.02, 0.02, 0.035]]), np.eye(3)[None], np.array([[0.0, 0.0, 1.0]]), 0.1, lo, 0.01, shape,
                np.ones(64, np.float32), np.ones(64, np.float32), lo, np.full(3, 0.04), 1)
     segments_blocked(np.zeros((1, 3)), np.full((1, 3), 0.03), lo, 0.01, shape, np.zeros(64, np.uint8))
