@@ -5,6 +5,7 @@ until the planner says stop. Planning, capture, motion planning and motion are t
 
 from __future__ import annotations
 
+import importlib
 import time
 import traceback
 from dataclasses import asdict, dataclass, field
@@ -18,14 +19,19 @@ from planners import clouds, raycast
 from planners.base import ScanState, ViewPlan
 from planners.clouds import Cloud
 from planners.config import PlannersConfig
-from planners.gnbv import GuidedNBV
 from planners.grid import OccupancyGrid
 from planners.metrics import coverage, displacement
 from planners.motion.ik import Unreachable, solve_camera_ik_many
 from planners.motion.kinematics import Kinematics
 from planners.motion.trajectory import plan_joint_motion
 
-PLANNERS = {"gnbv": GuidedNBV}
+# name -> "module:class"; imported on demand so one planner's dependencies never load another's
+PLANNERS = {
+    "enpv": "planners.enpv:ExtrapolatedNVP",
+    "cnbv": "planners.cnbv:ConstrainedNBV",
+    "gnbv": "planners.gnbv:GuidedNBV",
+    "global": "planners.global_nbv:GlobalNBV",
+}
 
 
 class ScanError(RuntimeError):
@@ -33,11 +39,12 @@ class ScanError(RuntimeError):
 
 
 def make_planner(name: str, cfg: PlannersConfig):
+    """A fresh planner for one scan (planners keep per-scan memory)."""
     try:
-        cls = PLANNERS[name]
+        module, cls = PLANNERS[name].split(":")
     except KeyError:
-        raise ValueError(f"unknown planner {name!r}; choose one of {sorted(PLANNERS)}") from None
-    return cls(cfg.nbv)
+        raise ValueError(f"unknown planner {name!r}; choose one of {', '.join(PLANNERS)}") from None
+    return getattr(importlib.import_module(module), cls)(cfg)
 
 
 @dataclass
@@ -172,7 +179,7 @@ class ScanJob:
     def _explore(self, res: ScanResult, initial_pose: np.ndarray, gt_points: np.ndarray | None) -> None:
         cfg = self.pcfg.nbv
         last_plan: ViewPlan | None = None
-        for k in range(cfg.max_steps):
+        for k in range(self.pcfg.max_steps):
             t0 = time.perf_counter()
             frame = self.camera.capture()
             T = self.arm.camera_pose()

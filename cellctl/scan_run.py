@@ -22,7 +22,7 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
                      progress: bool = True) -> tuple[ScanResult, Path]:
     pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
     if max_steps is not None:
-        pcfg = pcfg.model_copy(update={"nbv": pcfg.nbv.model_copy(update={"max_steps": max_steps})})
+        pcfg = pcfg.model_copy(update={"max_steps": max_steps})
     scene = load_scene(scene_ref)
     cam_cfg = cfg.twin.camera.model_copy(update={"noise": noise, **({"seed": seed} if seed is not None else {})})
     twin_cfg = cfg.twin.model_copy(update={"camera": cam_cfg})

@@ -73,7 +73,6 @@ class NBVConfig(_Strict):
     rays_h: int = Field(28, ge=3, le=300)
     max_range_m: float = Field(0.8, gt=0.1, le=5)
     min_frontier_cluster: int = Field(3, ge=1, le=1000)
-    max_steps: int = Field(12, ge=1, le=200)
     aim_ahead_m: float = Field(0.0, ge=0, le=0.5,
                                description="look this far past the frontier centroid along the drawing (0: at it, as the paper)")
     revisit_angle_deg: float = Field(25.0, ge=0, le=90,
@@ -88,10 +87,23 @@ class NBVConfig(_Strict):
         return self
 
 
+class ENVPConfig(_Strict):
+    """Extrapolated NVP (§V-A, Alg. 1)."""
+
+    delta_distance_voxels: float = Field(1.0, ge=0, le=50,
+                                         description="δ_distance: extrapolate this far past the curve end (paper: 1 voxel)")
+    delta_size_voxels: int = Field(3, ge=0, le=10_000,
+                                   description="δ_size: an extremity is found when D_total grew by at most this many voxels")
+    standoff_m: float = Field(0.35, ge=0.2, le=1.0, description="camera distance from the surface along its normal")
+    normal_radius_m: float = Field(0.04, gt=0.005, le=0.3, description="neighbourhood for the surface normal")
+
+
 class PlannersConfig(_Strict):
     grid: GridConfig = GridConfig()
     color: ColorFilter = ColorFilter()
     nbv: NBVConfig = NBVConfig()
+    enpv: ENVPConfig = ENVPConfig()
+    max_steps: int = Field(16, ge=1, le=200, description="views per scan at most, initial one included")
     coverage_voxel_m: float = Field(0.01, gt=0.001, le=0.1)
 
 

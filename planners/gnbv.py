@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 from planners import nbv
 from planners.base import ScanState, ViewPlan
-from planners.config import NBVConfig
+from planners.config import PlannersConfig
 from planners.grid import frontier_clusters
 from planners.views import look_at_rotations, poses_from, sphere_lattice
 
@@ -18,8 +18,8 @@ from planners.views import look_at_rotations, poses_from, sphere_lattice
 class GuidedNBV:
     name = "gnbv"
 
-    def __init__(self, cfg: NBVConfig):
-        self.cfg = cfg
+    def __init__(self, cfg: PlannersConfig):
+        self.cfg = cfg = cfg.nbv
         self._lattice = sphere_lattice(cfg.search_radius_m, cfg.min_standoff_m, cfg.candidate_spacing_m)
         self._targets: list[np.ndarray] = []  # f̂ of every plan handed out
         self._target_steps: list[int] = []  # the step each was planned at
