@@ -21,6 +21,12 @@ def _scan(args: argparse.Namespace) -> int:
     return 0 if result.error is None else 1
 
 
+def _bench(args: argparse.Namespace) -> int:
+    from cellctl.bench import cli_bench
+
+    return cli_bench(args)
+
+
 def _print_summary(r, run_dir: Path) -> None:
     rows = [
         ("scene", r.scene), ("planner", r.planner), ("steps (viewpoints)", r.steps),
@@ -54,6 +60,20 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-steps", type=int, default=None, help="override the planner's step limit")
     s.add_argument("--quiet", action="store_true", help="no per-step progress lines")
     s.set_defaults(func=_scan)
+    b = sub.add_parser("bench", help="scan every (scene, planner, seed) in the twin and report beside the paper's "
+                                     "Table II", description="Exit status: 0 all runs ok, 1 some run failed "
+                                     "(recorded as an error row), 2 bad arguments or config.")
+    b.add_argument("--scenes", default=None, help="'all' or a comma list of built-in scenes (default: all)")
+    b.add_argument("--planners", default=None, help="'all' or a comma list of planners (default: enpv,cnbv,gnbv,global)")
+    b.add_argument("--seeds", type=int, default=None, help="sensor noise seeds 0..N-1 per pair (default: 3)")
+    b.add_argument("--out", default=None, help="output folder (default: bench/<timestamp>)")
+    b.add_argument("--quick", action="store_true",
+                   help="smooth_cylinder,round_tank x gnbv,enpv x 1 seed (explicit options still win)")
+    b.add_argument("--config", default=None, help="cell config YAML (default: configs/cell.sim.yaml)")
+    b.add_argument("--no-memory", action="store_true", help="do not trace allocations (tracemalloc) during runs")
+    b.add_argument("--report", default=None, metavar="BENCH_JSON",
+                   help="only rewrite bench.md and the plots next to this bench.json, no scans")
+    b.set_defaults(func=_bench)
     return p
 
 

@@ -231,6 +231,7 @@ class ScanJob:
                 rec.chosen_rank, rec.ik_s, rec.motion_s, rec.tracking_error_rad = rank, rec.ik_s + ik_s, motion_s, err
                 return plan
             except Unreachable:
+                plan.tried = min(n, len(plan.poses))
                 self.planner.reject(plan)
                 rec.replans += 1
                 t = time.perf_counter()

@@ -35,6 +35,7 @@ class ViewPlan:
     target: np.ndarray | None = None  # the point the views look at (f̂ for G-NBV)
     frontier: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # frontier cell centres
     timings: dict[str, float] = field(default_factory=dict)
+    tried: int = 0  # set by the runner: how many of `poses` it tried to reach before rejecting
 
 
 class NextViewPlanner(Protocol):

@@ -72,9 +72,17 @@ class NBVConfig(_Strict):
     rays_w: int = Field(48, ge=4, le=400)
     rays_h: int = Field(28, ge=3, le=300)
     max_range_m: float = Field(0.8, gt=0.1, le=5)
+    frontier_reach_voxels: int = Field(1, ge=1, le=10, description="how far a drawing cell may be from the unknown")
     min_frontier_cluster: int = Field(3, ge=1, le=1000)
     aim_ahead_m: float = Field(0.0, ge=0, le=0.5,
                                description="look this far past the frontier centroid along the drawing (0: at it, as the paper)")
+    cnbv_angle_steps: int = Field(3, ge=1, le=9, description="C-NBV: orientations per axis (pitch, yaw)")
+    cnbv_angle_step_deg: float = Field(15.0, gt=0, le=45, description="C-NBV: spacing of those orientations")
+    global_view_directions: int = Field(120, ge=8, le=5000, description="global: candidates on the view sphere")
+    global_standoff_m: float = Field(0.35, gt=0.1, le=2, description="global: sphere radius beyond the object")
+    global_margin_m: float = Field(0.1, ge=0, le=1, description="global: unknown cells this far around the object count")
+    global_stop_fraction: float = Field(0.1, gt=0, lt=1, description="global: stop when the best gain falls below this share of the first")
+    floor_z_m: float = Field(0.02, description="global: occupied cells below this height are the floor")
     revisit_angle_deg: float = Field(25.0, ge=0, le=90,
                                      description="no candidate within this angle (seen from the target) of a past view")
     max_target_visits: int = Field(3, ge=1, le=20, description="give up a frontier cluster after this many views at it")

@@ -32,7 +32,7 @@ class GuidedNBV:
     def _clusters(self, state: ScanState):
         """Cluster centroids, their cells, and which are still worth a view."""
         grid = state.grid
-        labels, n = frontier_clusters(grid.frontier(), self.cfg.min_frontier_cluster)
+        labels, n = frontier_clusters(grid.frontier(self.cfg.frontier_reach_voxels), self.cfg.min_frontier_cluster)
         ijk = np.argwhere(labels > 0)
         if n == 0:
             return np.zeros((0, 3)), ijk, np.zeros(0, int), np.zeros(0, bool), np.zeros((0, 3))

@@ -77,22 +77,24 @@ class OccupancyGrid:
     def probability(self) -> np.ndarray:
         return 1.0 / (1.0 + np.exp(-self.logodds))
 
-    def frontier(self) -> np.ndarray:
+    def frontier(self, reach: int = 1) -> np.ndarray:
         """Cells with an unknown neighbour and a drawing neighbour (§V-B). Only unknown cells that
         touch observed free space count: the inside of a solid object is unknown forever and
-        would otherwise make every drawing cell a frontier."""
+        would otherwise make every drawing cell a frontier. `reach` > 1 lets the unknown be that many
+        cells away, so a drawing broken by small gaps (a basket of bars) still has a frontier."""
         out = np.zeros(self.shape, dtype=bool)
         ijk = np.argwhere(self.drawing)
         if len(ijk) == 0:
             return out
         # only cells next to the drawing can qualify: work on its bounding box (+3 cells of context)
-        lo = np.maximum(ijk.min(axis=0) - 3, 0)
-        hi = np.minimum(ijk.max(axis=0) + 4, self.shape)
+        pad = reach + 2
+        lo = np.maximum(ijk.min(axis=0) - pad, 0)
+        hi = np.minimum(ijk.max(axis=0) + pad + 1, self.shape)
         box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
         L = self.logodds[box]
         unknown = L == 0
         open_unknown = unknown & ndimage.binary_dilation(L < 0, structure=_N6)
-        near_unknown = ndimage.binary_dilation(open_unknown, structure=_N26)
+        near_unknown = ndimage.binary_dilation(open_unknown, structure=_N26, iterations=reach)
         near_drawing = ndimage.binary_dilation(self.drawing[box], structure=_N26)
         out[box] = near_unknown & near_drawing & ~unknown
         return out

@@ -30,14 +30,18 @@ def feature_probability(grid: OccupancyGrid, frontier_ijk: np.ndarray, cfg: NBVC
     return np.exp(-cfg.alpha_phi * (d / cfg.phi_length_m) ** 2).astype(np.float32), box
 
 
+def entropy_decrease(grid: OccupancyGrid, box: tuple) -> np.ndarray:
+    """h(g) of eq. 6 on a box of cells."""
+    c = grid.cfg
+    return _entropy_decrease(grid.logodds[box], c.l_hit, c.l_miss, c.l_min, c.l_max)
+
+
 def cell_weights(grid: OccupancyGrid, frontier_ijk: np.ndarray, cfg: NBVConfig) -> tuple[np.ndarray, np.ndarray]:
     """h(g)·p_φ(g) per cell, flat, zero where p_φ is negligible; and that box's (lo, hi) corners in
     metres, (2, 3)."""
     w = np.zeros(grid.shape, dtype=np.float32)
     phi, box = feature_probability(grid, frontier_ijk, cfg)
-    sub = grid.logodds[box]
-    h = _entropy_decrease(sub, grid.cfg.l_hit, grid.cfg.l_miss, grid.cfg.l_min, grid.cfg.l_max)
-    w[box] = h * phi
+    w[box] = entropy_decrease(grid, box) * phi
     corners = np.array([[s.start for s in box], [s.stop for s in box]], dtype=np.float64) * grid.voxel + grid.lo
     return w.reshape(-1), corners
 
@@ -54,8 +58,12 @@ def _entropy_decrease(L: np.ndarray, l_hit: float, l_miss: float, l_min: float, 
 
 
 def visibility_field(grid: OccupancyGrid, cfg: NBVConfig) -> np.ndarray:
-    """P[o_r = 0] per cell for eq. 8, flat; unknown cells get the configured prior."""
+    """P[o_r = 0] per cell for eq. 8, flat: 1 for free cells, 1 - p for occupied ones, a prior for
+    unknown ones (lower behind observed surfaces)."""
     p_free = (1.0 / (1.0 + np.exp(grid.logodds))).astype(np.float32)  # 1 - sigmoid(L)
+    # A cell the map calls free does not occlude: with clamped log-odds (p >= 0.12) the product would
+    # otherwise fade every ray through known air and favour candidates nearest the target.
+    p_free[grid.logodds < 0] = 1.0
     unknown = grid.unknown
     p_free[unknown] = cfg.unknown_visibility
     p_free[unknown & grid.shadow] = cfg.shadow_visibility
@@ -84,42 +92,45 @@ def quality(gain: np.ndarray, cost: np.ndarray, lam: float) -> np.ndarray:
 
 
 def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, normal: np.ndarray | None,
-                  cfg: NBVConfig, past_views: np.ndarray | None = None, cone_deg: float | None = None) -> np.ndarray:
-    """Mask of candidate positions a camera may occupy and see the target from: inside the grid, above
-    the floor limit, clear of occupied cells, on the observed side of the surface within the viewing
-    cone, not a repeat of a past viewing direction onto this target, and with no occupied cell on
-    the line of sight."""
+                  cfg: NBVConfig, past_views: np.ndarray | None = None, cone_deg: float | None = None,
+                  line_of_sight: bool = True) -> np.ndarray:
+    """Mask of candidate positions a camera may occupy and see its target from: inside the grid,
+    above the floor limit, clear of occupied cells, not inside what was seen to be behind a surface,
+    on the observed side of the surface within the viewing cone, not a repeat of a past viewing
+    direction onto the target, and with no occupied cell on the line of sight. `target` and
+    `normal` are one (3,) for all eyes or one row per eye; a NaN normal row means no cone."""
+    targets = np.broadcast_to(np.asarray(target, dtype=np.float64), eyes.shape)
     margin = cfg.clearance_m
     ok = np.all((eyes >= grid.lo + margin) & (eyes <= grid.hi - margin), axis=1)
     ok &= eyes[:, 2] >= cfg.min_camera_z_m
     if normal is not None:
-        v = eyes - target
-        cosang = (v @ normal) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
-        ok &= cosang >= np.cos(np.deg2rad(cfg.max_view_angle_deg if cone_deg is None else cone_deg))
+        normals = np.broadcast_to(np.asarray(normal, dtype=np.float64), eyes.shape)
+        v = eyes - targets
+        cosang = np.einsum("ij,ij->i", v, normals) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
+        limit = np.cos(np.deg2rad(cfg.max_view_angle_deg if cone_deg is None else cone_deg))
+        ok &= ~(cosang < limit)  # NaN normal: no constraint
     if ok.any():
-        # never inside what was seen to be behind a surface (the inside of the object, most likely)
         ijk, inside = grid.index_of(eyes)
         behind = np.zeros(len(eyes), dtype=bool)
         behind[inside] = grid.shadow[tuple(ijk[inside].T)] & grid.unknown[tuple(ijk[inside].T)]
         ok &= ~behind
     if past_views is not None and len(past_views) and cfg.revisit_angle_deg > 0:
-        u = eyes - target
+        u = eyes - targets
         u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
-        pv = past_views - target
-        pv /= np.maximum(np.linalg.norm(pv, axis=1, keepdims=True), 1e-9)
-        ok &= (u @ pv.T).max(axis=1) < np.cos(np.deg2rad(cfg.revisit_angle_deg))
+        pv = past_views[None, :, :] - targets[:, None, :]
+        pv /= np.maximum(np.linalg.norm(pv, axis=2, keepdims=True), 1e-9)
+        ok &= np.einsum("mj,mpj->mp", u, pv).max(axis=1) < np.cos(np.deg2rad(cfg.revisit_angle_deg))
     occ = np.argwhere(grid.occupied)
     if len(occ) and ok.any() and margin > 0:
-        tree = cKDTree(grid.centers(occ))
-        d, _ = tree.query(eyes[ok], k=1, distance_upper_bound=margin)
+        d, _ = cKDTree(grid.centers(occ)).query(eyes[ok], k=1, distance_upper_bound=margin)
         idx = np.flatnonzero(ok)
         ok[idx[np.isfinite(d)]] = False
-    if ok.any():
+    if ok.any() and line_of_sight:
         idx = np.flatnonzero(ok)
         e = eyes[idx]
-        v = target - e
+        v = targets[idx] - e
         L = np.linalg.norm(v, axis=1, keepdims=True)
-        stop_short = e + v * np.clip((L - 3 * grid.voxel) / L, 0, 1)
+        stop_short = e + v * np.clip((L - 3 * grid.voxel) / np.maximum(L, 1e-9), 0, 1)
         blocked = raycast.segments_blocked(np.ascontiguousarray(e), np.ascontiguousarray(stop_short), grid.lo,
                                            grid.voxel, np.asarray(grid.shape, dtype=np.int64),
                                            grid.occupied.reshape(-1).view(np.uint8))

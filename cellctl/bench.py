@@ -1,0 +1,306 @@
+"""`cellctl bench`: every (scene, planner, seed) scanned in the twin, one run folder each, collected in
+bench.json and reported side by side with the paper's Table II (see cellctl/bench_report.py).
+
+Runs are sequential in this process, so timings are not skewed by runs competing for cores. A run
+that fails (planner import error, exception, or `ScanResult.error`) becomes an error row; the bench
+goes on. bench.json is rewritten after every run, so an interrupted bench keeps what it finished.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+import tracemalloc
+from datetime import datetime
+from pathlib import Path
+from typing import TextIO
+
+from cellctl.artifacts import write_json
+from cellctl.config import CellConfig
+from cellctl.scan import PLANNERS, ScanResult
+
+SCHEMA_VERSION = 1
+DEFAULT_PLANNERS: tuple[str, ...] = ("enpv", "cnbv", "gnbv", "global")
+DEFAULT_SEEDS = 3
+QUICK = {"scenes": ("smooth_cylinder", "round_tank"), "planners": ("gnbv", "enpv"), "seeds": 1}
+_MIB = 1024 * 1024
+
+
+def parse_list(value: str | None, allowed: tuple[str, ...], what: str, default: tuple[str, ...]) -> list[str]:
+    """'all', None (-> default) or 'a,b' checked against `allowed`; order kept, duplicates dropped."""
+    if value is None:
+        return list(default)
+    if value.strip() == "all":
+        return list(allowed)
+    items = list(dict.fromkeys(s.strip() for s in value.split(",") if s.strip()))
+    if not items:
+        raise ValueError(f"--{what}: empty list")
+    bad = [s for s in items if s not in allowed]
+    if bad:
+        raise ValueError(f"--{what}: unknown {', '.join(map(repr, bad))}; choose from {', '.join(allowed)} or 'all'")
+    return items
+
+
+def planner_import_error(name: str) -> str | None:
+    """Why the planner cannot be built, or None. A half-written module fails here, not mid-bench."""
+    module, cls = PLANNERS[name].split(":")
+    try:
+        getattr(importlib.import_module(module), cls)
+    except Exception as e:  # noqa: BLE001 - any import-time failure is that planner's error row
+        return f"planner {name!r} does not import: {type(e).__name__}: {e}"
+    return None
+
+
+def machine_info() -> dict:
+    return {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine()}
+
+
+def code_info() -> dict:
+    """The git commit the bench ran on, and whether the tree had uncommitted changes."""
+    root = Path(__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                               capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return {"git_commit": None, "dirty": None}
+    if head.returncode != 0:
+        return {"git_commit": None, "dirty": None}
+    return {"git_commit": head.stdout.strip(), "dirty": bool(dirty.stdout.strip()) if dirty.returncode == 0 else None}
+
+
+def max_rss_mb() -> float:
+    """Peak resident set size of this process so far, MiB (Linux reports KiB, macOS bytes)."""
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(r / (_MIB if sys.platform == "darwin" else 1024), 1)
+
+
+def run_record(scene: str, category: int | None, planner: str, seed: int, result: ScanResult,
+               run_dir: str | None, wall_s: float, peak_memory_mb: float | None) -> dict:
+    """One row of bench.json. `views` counts every captured view (the initial one included);
+    `viewpoints` is the paper's n_viewpoints (§VI-C.1), which excludes the initial view; `step_s` is
+    eq. 11 with that divisor."""
+    views = int(result.steps)
+    viewpoints = max(views - 1, 0)
+    return {
+        "scene": scene, "category": category, "planner": planner, "seed": seed,
+        "views": views,
+        "viewpoints": viewpoints,
+        "planning_s": round(float(result.planning_s), 4),
+        "step_s": round(float(result.planning_s) / viewpoints, 4) if viewpoints else None,
+        "capture_s": round(float(result.capture_s), 4),
+        "motion_s": round(float(result.motion_s), 4),
+        "motion_planning_s": round(float(result.motion_planning_s), 4),
+        "displacement_m": round(float(result.displacement_m), 5),
+        "coverage": {"hit": int(result.coverage_hit), "total": int(result.coverage_total),
+                     "percent": float(result.coverage_percent)},
+        "terminated_by": result.terminated_by,
+        "peak_memory_mb": peak_memory_mb,
+        "process_max_rss_mb": max_rss_mb(),
+        "wall_s": round(wall_s, 2),
+        "error": result.error,
+        "run_dir": run_dir,
+    }
+
+
+class Progress:
+    """A self-drawn bar on stderr: a line per finished run, with elapsed time and ETA."""
+
+    def __init__(self, total: int, stream: TextIO | None = None):
+        self.total, self.done, self.stream = total, 0, stream if stream is not None else sys.stderr
+        self.t0 = time.perf_counter()
+        self.scan_walls: list[float] = []  # runs that built a twin (import-error rows take no time)
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+
+    def _bar(self, n: int, width: int = 24) -> str:
+        fill = int(round(width * n / self.total)) if self.total else width
+        return "[" + "#" * fill + "." * (width - fill) + "]"
+
+    def _eta(self) -> str:
+        left = self.total - self.done
+        if not left:
+            return "0:00"
+        if not self.scan_walls:
+            return "?"
+        return _hms(left * sum(self.scan_walls) / len(self.scan_walls))
+
+    def start(self, label: str) -> None:
+        line = f"{self._bar(self.done)} {self.done}/{self.total} running {label}  elapsed {self._elapsed()}  ETA {self._eta()}"
+        if self.tty:
+            self.stream.write("\r\033[K" + line)
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+
+    def finish(self, label: str, rec: dict, scanned: bool) -> None:
+        self.done += 1
+        if scanned:
+            self.scan_walls.append(rec["wall_s"])
+        if rec["error"]:
+            status = "ERROR " + rec["error"].splitlines()[0][:100]
+        else:
+            status = (f"ok  {rec['views']} views  cov {rec['coverage']['percent']:.1f} %  "
+                      f"planning {rec['planning_s']:.1f} s")
+        line = (f"{self._bar(self.done)} {self.done}/{self.total} {label}: {status}  [{rec['wall_s']:.0f} s]  "
+                f"elapsed {self._elapsed()}  ETA {self._eta()}")
+        self.stream.write(("\r\033[K" if self.tty else "") + line + "\n")
+        self.stream.flush()
+
+    def _elapsed(self) -> str:
+        return _hms(time.perf_counter() - self.t0)
+
+
+def _hms(s: float) -> str:
+    s = int(round(s))
+    h, rem = divmod(s, 3600)
+    m, sec = divmod(rem, 60)
+    return f"{h}:{m:02d}:{sec:02d}" if h else f"{m}:{sec:02d}"
+
+
+def _subdirs(p: Path) -> set[Path]:
+    return {c for c in p.iterdir() if c.is_dir()} if p.is_dir() else set()
+
+
+def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list[str], seeds: int, out: Path, *,
+              memory: bool = True, quick: bool = False, stream: TextIO | None = None) -> dict:
+    """Run the grid, write OUT/bench.json (after every run) and OUT/runs/seed<k>/<run folders>;
+    returns the bench document. The report is written by the caller (cellctl.bench_report)."""
+    from cellctl.scan_run import run_scan_in_twin
+    from planners.config import load_planners_config
+    from sim.scenes import load_scene
+
+    if seeds < 1:
+        raise ValueError("--seeds must be >= 1")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
+    # Scenes are built once per process and cached, so loading them here costs the runs nothing;
+    # it also fails early on a bad name and gives the category.
+    categories = {name: load_scene(name).category for name in scenes}
+    import_errors = {p: planner_import_error(p) for p in planners}
+
+    t_start = time.perf_counter()
+    doc = {
+        "schema_version": SCHEMA_VERSION,
+        "created": datetime.now().astimezone().isoformat(timespec="seconds"),
+        "complete": False,
+        "bench": {"scenes": scenes, "planners": planners, "seeds": list(range(seeds)), "quick": quick,
+                  "memory": memory, "noise": True},
+        "config": {"cell_config_path": str(cfg_path), "cell": cfg.model_dump(mode="json"),
+                   "planners": pcfg.model_dump(mode="json")},
+        "machine": machine_info(),
+        "code": code_info(),
+        "process": {},
+        "runs": [],
+    }
+    json_path = out / "bench.json"
+    grid = [(s, p, k) for s in scenes for p in planners for k in range(seeds)]
+    bar = Progress(len(grid), stream)
+    if memory:
+        tracemalloc.start()
+    try:
+        for scene, planner, seed in grid:
+            label = f"{scene} / {planner} / seed {seed}"
+            bar.start(label)
+            if import_errors[planner]:
+                rec = run_record(scene, categories[scene], planner, seed,
+                                 ScanResult(scene, planner, error=import_errors[planner], terminated_by="error"),
+                                 None, 0.0, None)
+                scanned = False
+            else:
+                rec = _one_run(cfg, cfg_path, scene, categories[scene], planner, seed, out, memory, run_scan_in_twin)
+                scanned = True
+            doc["runs"].append(rec)
+            doc["process"] = {"max_rss_mb": max_rss_mb(), "wall_s": round(time.perf_counter() - t_start, 1)}
+            write_json(json_path, doc)
+            bar.finish(label, rec, scanned)
+        doc["complete"] = True
+    finally:
+        if memory:
+            tracemalloc.stop()
+        doc["process"] = {"max_rss_mb": max_rss_mb(), "wall_s": round(time.perf_counter() - t_start, 1)}
+        write_json(json_path, doc)
+    return doc
+
+
+def _one_run(cfg, cfg_path, scene, category, planner, seed, out: Path, memory: bool, run_scan_in_twin) -> dict:
+    runs_root = out / "runs" / f"seed{seed}"
+    before = _subdirs(runs_root)
+    base = 0
+    if memory:
+        base = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+    t0 = time.perf_counter()
+    run_dir: Path | None
+    try:
+        result, run_dir = run_scan_in_twin(cfg, cfg_path, scene, planner, seed=seed, noise=True,
+                                           out=str(runs_root), progress=False)
+    except Exception as e:  # noqa: BLE001 - the bench records it and goes on
+        import traceback
+
+        result = ScanResult(scene, planner, terminated_by="error",
+                            error=f"{type(e).__name__}: {e}\n" + traceback.format_exc(limit=6))
+        new = sorted(_subdirs(runs_root) - before)
+        run_dir = new[-1] if new else None
+    wall = time.perf_counter() - t0
+    peak = round(max(tracemalloc.get_traced_memory()[1] - base, 0) / _MIB, 1) if memory else None
+    rel = None
+    if run_dir is not None:
+        run_dir = Path(run_dir)
+        try:
+            rel = str(run_dir.resolve().relative_to(out.resolve()))
+        except ValueError:
+            rel = str(run_dir.resolve())
+    return run_record(scene, category, planner, seed, result, rel, wall, peak)
+
+
+def default_out_dir() -> Path:
+    return Path("bench") / time.strftime("%Y%m%d-%H%M%S")
+
+
+def summary_line(doc: dict) -> str:
+    runs = doc["runs"]
+    errors = sum(1 for r in runs if r["error"])
+    wall = doc.get("process", {}).get("wall_s", math.nan)
+    rss = doc.get("process", {}).get("max_rss_mb", math.nan)
+    return f"{len(runs)} runs, {errors} errors, {wall:.0f} s wall, max RSS {rss:.0f} MiB"
+
+
+def cli_bench(args) -> int:
+    """`cellctl bench` (parser in cellctl/cli.py). Exit 0: all runs ok; 1: some run failed; 130: interrupted."""
+    from cellctl import bench_report
+    from cellctl.config import load_cell_config
+    from sim.scenes import SCENE_NAMES
+
+    if args.report:
+        doc = bench_report.load_bench(args.report)
+        for path in bench_report.write_report(doc, Path(args.report).parent):
+            print(path)
+        return 0
+    q = QUICK if args.quick else {}
+    scenes = parse_list(args.scenes, SCENE_NAMES, "scenes", q.get("scenes", SCENE_NAMES))
+    planners = parse_list(args.planners, DEFAULT_PLANNERS, "planners", q.get("planners", DEFAULT_PLANNERS))
+    seeds = args.seeds if args.seeds is not None else q.get("seeds", DEFAULT_SEEDS)
+    if seeds < 1:
+        raise ValueError("--seeds must be >= 1")
+    out = Path(args.out) if args.out else default_out_dir()
+    cfg, cfg_path = load_cell_config(args.config)
+    print(f"bench: {len(scenes)} scenes x {len(planners)} planners x {seeds} seeds = "
+          f"{len(scenes) * len(planners) * seeds} runs -> {out}", file=sys.stderr)
+    try:
+        doc = run_bench(cfg, cfg_path, scenes, planners, seeds, out, memory=not args.no_memory, quick=args.quick)
+    except KeyboardInterrupt:
+        if (out / "bench.json").is_file():
+            bench_report.write_report(bench_report.load_bench(out / "bench.json"), out)
+        print(f"\ninterrupted; the finished runs are in {out}", file=sys.stderr)
+        return 130
+    bench_report.write_report(doc, out)
+    print(f"{summary_line(doc)}\n{out / 'bench.md'}")
+    return 0 if not any(r["error"] for r in doc["runs"]) else 1
