@@ -56,7 +56,9 @@ class NBVConfig(_Strict):
     phi_length_m: float = Field(0.05, gt=0, le=1.0,
                                 description="unit in which dist_F of eq. 7 is measured (the paper leaves it unstated)")
     delta_q: float = Field(0.0, description="δ_Q of eq. 9 on the normalized quality")
-    min_gain: float = Field(0.5, ge=0, description="stop when the best raw gain (entropy, nats) falls below this")
+    min_gain: float = Field(0.5, ge=0, description="a target whose best raw gain (nats) is below this is given up")
+    min_gain_fraction: float = Field(0.2, ge=0, lt=1,
+                                     description="... or below this share of the first step's best gain")
     search_radius_m: float = Field(0.42, gt=0.05, le=1.5, description="outer radius of the candidate sphere")
     min_standoff_m: float = Field(0.25, ge=0.1, le=1.0, description="inner radius: the D435 needs distance")
     candidate_spacing_m: float = Field(0.04, ge=0.005, le=0.3)

@@ -25,6 +25,7 @@ FALLBACK_STANDOFFS_M = (0.30, 0.45)  # fallbacks: nearer / farther along the sam
 # in-view extremity test: surface seen this far past where the paint ends (within this radius, at
 # least this fraction of the density of a fully seen patch)
 PROBE_GAP_M, PROBE_RADIUS_M, PROBE_FILL = 0.03, 0.02, 0.4
+AT_INITIAL_M = 0.02  # a camera this near the initial view need not backtrack to it
 
 
 def _end_tangent(curve: np.ndarray, span: float) -> np.ndarray:
@@ -105,7 +106,7 @@ class ExtrapolatedNVP:
             return self._stop("no drawing", curve, t0, timings)  # one voxel of paint: no direction
         if self._backtrack:
             self._backtrack = False
-            if np.linalg.norm(state.camera_pose[:3, 3] - self._initial[:3, 3]) > 0.02:
+            if np.linalg.norm(state.camera_pose[:3, 3] - self._initial[:3, 3]) > AT_INITIAL_M:
                 self._check = False  # returning adds nothing new: not the second extremity
                 return self._plan([self._initial], self._initial[:3, 3] + self.cfg.standoff_m * self._initial[:3, 2],
                                   curve, t0, timings)
@@ -128,9 +129,14 @@ class ExtrapolatedNVP:
 
     def _initial_end(self, curve: np.ndarray, state: ScanState) -> int:
         """The paper's choice at the initial view: if an extremity is already in view, explore toward
-        the other end; otherwise the end nearest the camera. An end is an extremity in view when the
-        surface was seen going on past it without paint (a cut by the image border or an occluding
-        edge leaves no surface there). Records such ends in `found`; returns the end to explore."""
+        the other end (recording it in `found`); otherwise the end nearest the camera. An end is an
+        extremity in view when the surface was seen going on past it with no paint there (a cut by
+        the image border or an occluding edge leaves no surface there; a gap, paint beyond it). Not
+        tried on a curve too short for a trustworthy tangent: exploring that end costs one view."""
+        ends = curve[[0, -1]]
+        nearest = int(np.argmin(np.linalg.norm(ends - state.camera_pose[:3, 3], axis=1)))
+        if np.linalg.norm(np.diff(curve, axis=0), axis=1).sum() < 2 * TANGENT_SPAN_M:
+            return nearest
         closed = []
         for i, oriented in enumerate((curve, curve[::-1])):  # the two ends
             end, t = oriented[0], _end_tangent(oriented, TANGENT_SPAN_M)
@@ -139,13 +145,11 @@ class ExtrapolatedNVP:
             near = np.sum(rel**2, axis=1) < TANGENT_SPAN_M**2
             probe = end + (max(float((rel[near] @ t).max(initial=0.0)), 0.0) + PROBE_GAP_M) * t
             seen = np.count_nonzero(np.sum((state.surface.xyz - probe) ** 2, axis=1) < PROBE_RADIUS_M**2)
-            if seen >= PROBE_FILL * np.pi * (PROBE_RADIUS_M / self.surface_voxel) ** 2:
+            paint = np.any(np.sum((state.drawing.xyz - probe) ** 2, axis=1) < PROBE_RADIUS_M**2)
+            if not paint and seen >= PROBE_FILL * np.pi * (PROBE_RADIUS_M / self.surface_voxel) ** 2:
                 closed.append(i)
-        ends = curve[[0, -1]]
         self.found.extend(ends[i] for i in closed)
-        if len(closed) == 1:
-            return 1 - closed[0]
-        return int(np.argmin(np.linalg.norm(ends - state.camera_pose[:3, 3], axis=1)))
+        return 1 - closed[0] if len(closed) == 1 else nearest
 
     def _views(self, state: ScanState, d: np.ndarray, end: np.ndarray, tangent: np.ndarray) -> list[np.ndarray]:
         """Square-on views of d (§V-A: orthogonal to the surface there), best first: the configured
@@ -156,8 +160,9 @@ class ExtrapolatedNVP:
             n = outward_normal(state.surface, end, r)
         if n is None:
             n = WORLD_UP
-        axis = tangent - np.dot(tangent, n) * n
-        axis = axis / np.linalg.norm(axis) if np.linalg.norm(axis) > 1e-6 else np.cross(n, [1.0, 0.0, 0.0])
+        axis = tangent - np.dot(tangent, n) * n  # the tangent within the surface: the tilt axis
+        if np.linalg.norm(axis) < 1e-6:  # a line leaving the surface: any axis across n will do
+            axis = np.cross(n, WORLD_UP if abs(n[2]) < 0.9 else np.array([1.0, 0.0, 0.0]))
         axis /= np.linalg.norm(axis)
         standoffs = list(dict.fromkeys((self.cfg.standoff_m, *FALLBACK_STANDOFFS_M)))
         eyes = np.array([d + s * _rotate(n, axis, tilt) for tilt in TILTS_DEG for s in standoffs])

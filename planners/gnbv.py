@@ -24,6 +24,7 @@ class GuidedNBV:
         self._targets: list[np.ndarray] = []  # f̂ of every plan handed out
         self._target_steps: list[int] = []  # the step each was planned at
         self._given_up: list[np.ndarray] = []  # targets that proved unreachable or without gain
+        self._first_gain: float | None = None  # the scale of a useful view, for the stop rule
 
     def reject(self, plan: ViewPlan) -> None:
         if plan.target is not None:
@@ -85,7 +86,10 @@ class GuidedNBV:
         gain = nbv.gains(grid, eyes, R, weights, p_free, state.K, state.image_size, cfg)
         q = nbv.quality(gain, np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1), cfg.lam)
         rank = np.argsort(-q, kind="stable")
-        if gain.max() < cfg.min_gain or q[rank[0]] < cfg.delta_q:
+        best = float(gain.max())
+        if self._first_gain is None:
+            self._first_gain = best
+        if best < max(cfg.min_gain, cfg.min_gain_fraction * self._first_gain) or q[rank[0]] < cfg.delta_q:
             return None
         return poses_from(eyes[rank], R[rank]), q[rank], gain[rank]
 
@@ -106,9 +110,11 @@ class GuidedNBV:
             normal = nbv.outward_normal(state.surface, target)
             weights = nbv.cell_weights(grid, ijk[lab == c], cfg)
             # Square-on views first (the D435 returns nothing at grazing incidence); only if none of
-            # them gains anything, the relaxed cone that can look round an edge.
-            for cone in (cfg.max_view_angle_deg, cfg.relaxed_view_angle_deg):
-                scored = self._score(state, target, normal, cone, weights, p_free)
+            # them gains anything, a relaxed cone.
+            # Last, no cone at all: at an edge the normal describes the side already seen, and the
+            # drawing goes on round the corner.
+            for cone in (cfg.max_view_angle_deg, cfg.relaxed_view_angle_deg, None):
+                scored = self._score(state, target, None if cone is None else normal, cone or 90.0, weights, p_free)
                 if scored is not None:
                     break
             if scored is None:

@@ -54,7 +54,10 @@ def _entropy_decrease(L: np.ndarray, l_hit: float, l_miss: float, l_min: float, 
         return -(p * np.log(p) + (1 - p) * np.log(1 - p))
 
     p = 1.0 / (1.0 + np.exp(-L))
-    return (H(L) - (p * H(np.minimum(L + l_hit, l_max)) + (1 - p) * H(np.maximum(L + l_miss, l_min)))).astype(np.float32)
+    h = H(L) - (p * H(np.minimum(L + l_hit, l_max)) + (1 - p) * H(np.maximum(L + l_miss, l_min)))
+    # With clamped, fixed increments a confident cell can "expect" more entropy after a surprising
+    # hit than it has now; information does not go negative, so neither may h.
+    return np.maximum(h, 0.0).astype(np.float32)
 
 
 def visibility_field(grid: OccupancyGrid, cfg: NBVConfig) -> np.ndarray:

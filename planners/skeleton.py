@@ -9,7 +9,6 @@ import numpy as np
 from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
-from scipy.spatial import cKDTree
 from skimage.morphology import skeletonize
 
 #: one of each opposite pair of the 26 neighbour offsets: every skeleton edge is found once
@@ -47,22 +46,6 @@ def skeleton_graph(skel: np.ndarray) -> tuple[np.ndarray, "coo_matrix"]:
     return nodes, coo_matrix((ww, (r, c)), shape=(len(nodes), len(nodes)))
 
 
-def _bridges(nodes: np.ndarray, labels: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The shortest link (rows, cols, lengths) between every two skeleton pieces closer than `reach`
-    voxels: a gap the closing could not fill (a missed patch of paint) should not cut the curve."""
-    pairs = cKDTree(nodes).query_pairs(reach, output_type="ndarray")
-    pairs = pairs[labels[pairs[:, 0]] != labels[pairs[:, 1]]]
-    if len(pairs) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-    length = np.linalg.norm(nodes[pairs[:, 0]] - nodes[pairs[:, 1]], axis=1)
-    la, lb = labels[pairs[:, 0]], labels[pairs[:, 1]]
-    key = np.minimum(la, lb) * (labels.max() + 1) + np.maximum(la, lb)
-    order = np.lexsort((length, key))
-    _, first = np.unique(key[order], return_index=True)
-    keep = order[first]
-    return pairs[keep, 0], pairs[keep, 1], length[keep]
-
-
 def _farthest(graph, source: int, with_path: bool = False):
     d, pred = dijkstra(graph, directed=False, indices=source, return_predecessors=True)
     d[~np.isfinite(d)] = -1.0
@@ -75,11 +58,11 @@ def _farthest(graph, source: int, with_path: bool = False):
     return far, np.asarray(path[::-1])
 
 
-def order_curve(xyz: np.ndarray, voxel: float, closing_iterations: int = 1, bridge_m: float = 0.04) -> np.ndarray:
-    """Voxelize, close small gaps, thin to a 1-voxel skeleton and return its longest geodesic path
-    (double sweep: the node farthest from any node is an end; the node farthest from that is the
-    other) as voxel centres (K,3) in metres, from one end to the other. Pieces of the skeleton within
-    `bridge_m` of each other are linked; of what stays apart, the piece with most voxels wins.
+def order_curve(xyz: np.ndarray, voxel: float, closing_iterations: int = 1) -> np.ndarray:
+    """Voxelize, close gaps of up to 2 x `closing_iterations` voxels (a patch the sensor dropped), thin
+    to a 1-voxel skeleton and return its longest geodesic path (double sweep: the node farthest from
+    any node is an end; the node farthest from that is the other) as voxel centres (K,3) in metres,
+    from one end to the other. Of skeleton pieces still apart, the one with most voxels wins.
     A branched drawing yields one curve between two of its ends: E-NVP's limit, by design."""
     if len(xyz) == 0:
         return np.zeros((0, 3))
@@ -91,13 +74,8 @@ def order_curve(xyz: np.ndarray, voxel: float, closing_iterations: int = 1, brid
     if not skel.any():  # thinning keeps at least one voxel per component; only an empty input ends here
         return np.zeros((0, 3))
     nodes, graph = skeleton_graph(skel)
-    n_pieces, labels = connected_components(graph, directed=False)
-    if n_pieces > 1:
-        r, c, w = _bridges(nodes, labels, bridge_m / voxel)
-        graph = coo_matrix((np.concatenate([graph.data, w]), (np.concatenate([graph.row, r]),
-                                                              np.concatenate([graph.col, c]))), shape=graph.shape)
-        n_pieces, labels = connected_components(graph, directed=False)
     graph = graph.tocsr()
+    _, labels = connected_components(graph, directed=False)
     start = int(np.flatnonzero(labels == np.argmax(np.bincount(labels)))[0])
     a, _ = _farthest(graph, start)
     _, path = _farthest(graph, a, with_path=True)

@@ -107,6 +107,14 @@ def test_ordering_a_curved_stripe_runs_from_one_end_to_the_other():
     assert np.allclose(np.linalg.norm(curve[:, :2] - CENTER, axis=1), RADIUS, atol=0.012)
 
 
+def test_a_small_gap_in_the_paint_does_not_cut_the_curve():
+    pts = _stripe_points(*ARC_DEG)
+    a = np.degrees(np.arctan2(pts[:, 1] - CENTER[1], pts[:, 0] - CENTER[0]))
+    gap = pts[np.abs(a - 60.0) > 4.0]  # ~2.8 cm of the arc unpainted: two empty voxels at most
+    assert np.linalg.norm(np.diff(order_curve(gap, 0.01), axis=0), axis=1).sum() > 0.3  # not one half
+    assert np.linalg.norm(np.diff(order_curve(gap, 0.01, 0), axis=0), axis=1).sum() < 0.2  # closing did it
+
+
 def test_a_branched_drawing_gives_one_curve_between_two_of_its_ends():
     rng = np.random.default_rng(1)
     hub = np.array([0.5, 0.0, Z])
@@ -181,6 +189,13 @@ def test_an_extremity_in_the_initial_view_sends_it_the_other_way_without_backtra
     assert plan.stop and plan.reason == "extremities"
 
 
+def test_a_drawing_wholly_in_the_initial_view_needs_no_more_views():
+    scan = Scan(0.55, 0.1)
+    scan.seen |= _window(0.55, 0.1, half=0.25)  # both ends, and the surface past them
+    plan = _planner().next_view(scan.state())
+    assert plan.stop and plan.reason == "extremities"
+
+
 def test_reject_counts_as_an_extremity():
     p, scan = _planner(), Scan(*_arc_xy(60.0))
     plan = p.next_view(scan.state())
@@ -218,9 +233,11 @@ def test_a_step_is_fast():
     a = _angle(PLANE.T)
     surf = np.vstack([xyz, PLANE[(a >= 20.0) & (a <= 110.0)]]).astype(np.float32)
     eye = np.array([0.5, 0.1, 0.45], np.float32)
-    state = ScanState(0, _GRID, Cloud(surf, np.zeros((len(surf), 3), np.uint8), np.broadcast_to(eye, surf.shape).copy()),
-                      Cloud(xyz, np.zeros((len(xyz), 3), np.uint8), np.broadcast_to(eye, xyz.shape).copy()),
-                      Cloud.empty(), _cam(0.5, 0.1), _cam(0.5, 0.1), np.eye(3), (848, 480))
+    def cloud(p):
+        return Cloud(p, np.zeros((len(p), 3), np.uint8), np.broadcast_to(eye, p.shape).copy())
+
+    state = ScanState(0, _GRID, cloud(surf), cloud(xyz), Cloud.empty(), _cam(0.5, 0.1), _cam(0.5, 0.1), np.eye(3),
+                      (848, 480))
     _planner().next_view(state)  # warm
     t = time.perf_counter()
     p = _planner()
