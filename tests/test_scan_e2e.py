@@ -36,6 +36,15 @@ def test_gnbv_covers_the_drawing(cell, scene, tmp_path):
     assert result.planning_s > 0 and result.motion_s > 0 and result.capture_s > 0
     for name in ("result.json", "drawing.ply", "surface.ply", "scan.rrd"):
         assert (run_dir / name).stat().st_size > 0, name
+    rerun_cli = Path(sys.executable).with_name("rerun")
+    ok = subprocess.run([str(rerun_cli), "rrd", "verify", str(run_dir / "scan.rrd")], capture_output=True, text=True,
+                        timeout=120)
+    assert ok.returncode == 0, ok.stderr
+    dump = subprocess.run([str(rerun_cli), "rrd", "print", str(run_dir / "scan.rrd")], capture_output=True,
+                          text=True, timeout=120).stdout
+    for entity in ("/world/captures/0", "/world/camera/image", "/world/frontier", "/world/viewpoints",
+                   "/world/drawing", "/world/candidates"):
+        assert entity in dump, entity
     saved = json.loads((run_dir / "result.json").read_text())
     assert saved["coverage_percent"] == result.coverage_percent and saved["steps"] == result.steps
     assert len(saved["viewpoints"]) == result.steps
