@@ -57,8 +57,9 @@ class StepRecord:
     candidates: int
     best_quality: float | None
     best_gain: float | None
-    planning_s: float
+    planning_s: float  # eq. 10's share of this step: cloud processing + grid update + view planning
     capture_s: float
+    process_s: float = 0.0  # of planning_s: clouds, colour filter, grid update
     ik_s: float = 0.0
     motion_s: float = 0.0
     tracking_error_rad: float = 0.0
@@ -187,6 +188,7 @@ class ScanJob:
                 self.first_color = frame.color
             t1 = time.perf_counter()
             cloud = self._process(frame, T)
+            t_proc = time.perf_counter() - t1
             if len(cloud) == 0 and last_plan is not None:
                 self.planner.reject(last_plan)  # that view saw nothing: do not aim there again
             state = ScanState(k, self.grid, self.surface, self.drawing, cloud, T, initial_pose, self.K, self.image_size,
@@ -194,7 +196,8 @@ class ScanJob:
             plan = self.planner.next_view(state)
             t2 = time.perf_counter()
             rec = StepRecord(k, T[:3, 3].round(4).tolist(), len(self.surface), len(self.drawing), len(plan.frontier),
-                             len(plan.poses), _first(plan.quality), _first(plan.gain), t2 - t1, t1 - t0)
+                             len(plan.poses), _first(plan.quality), _first(plan.gain), t2 - t1, t1 - t0,
+                             process_s=t_proc)
             if gt_points is not None and len(gt_points):
                 rec.coverage_percent = round(coverage(self.drawing.xyz, gt_points, self.pcfg.coverage_voxel_m).percent, 2)
             res.viewpoints.append(T[:3, 3].tolist())

@@ -24,11 +24,11 @@ class ColorFilter(_Strict):
 class GridConfig(_Strict):
     """The probabilistic occupancy grid (log-odds per cell) over a bounded workspace."""
 
-    lo_m: tuple[float, float, float] = (0.0, -0.6, 0.0)
-    hi_m: tuple[float, float, float] = (1.2, 0.6, 1.0)
+    lo_m: tuple[float, float, float] = (-0.2, -0.8, 0.0)
+    hi_m: tuple[float, float, float] = (1.2, 0.8, 1.0)
     voxel_m: float = Field(0.01, ge=0.002, le=0.1)
-    l_hit: float = Field(0.85, gt=0, le=5)
-    l_miss: float = Field(-0.4, lt=0, ge=-5)
+    l_hit: float = Field(2.0, gt=0, le=5)
+    l_miss: float = Field(-1.5, lt=0, ge=-5)
     l_min: float = Field(-2.0, lt=0, ge=-20)
     l_max: float = Field(3.5, gt=0, le=20)
     shadow_depth_m: float = Field(0.05, ge=0, le=0.5, description="depth behind each hit marked as shadow")
@@ -53,20 +53,20 @@ class NBVConfig(_Strict):
 
     lam: float = Field(0.5, ge=0, lt=1, description="λ of eq. 4 (paper: 1/2)")
     alpha_phi: float = Field(5.0, gt=0, description="α_φ of eq. 7 (paper: 5), per phi_length_m squared")
-    phi_length_m: float = Field(0.05, gt=0, le=1.0,
+    phi_length_m: float = Field(0.10, gt=0, le=1.0,
                                 description="unit in which dist_F of eq. 7 is measured (the paper leaves it unstated)")
     delta_q: float = Field(0.0, description="δ_Q of eq. 9 on the normalized quality")
     min_gain: float = Field(0.5, ge=0, description="a target whose best raw gain (nats) is below this is given up")
     min_gain_fraction: float = Field(0.2, ge=0, lt=1,
                                      description="... or below this share of the first step's best gain")
-    search_radius_m: float = Field(0.42, gt=0.05, le=1.5, description="outer radius of the candidate sphere")
+    search_radius_m: float = Field(0.55, gt=0.05, le=1.5, description="outer radius of the candidate sphere")
     min_standoff_m: float = Field(0.25, ge=0.1, le=1.0, description="inner radius: the D435 needs distance")
-    candidate_spacing_m: float = Field(0.04, ge=0.005, le=0.3)
+    candidate_spacing_m: float = Field(0.05, ge=0.005, le=0.3)
     max_view_angle_deg: float = Field(60.0, gt=0, le=90, description="candidates within this angle of the surface normal")
     relaxed_view_angle_deg: float = Field(85.0, gt=0, le=90,
                                           description="the cone tried when no square-on view gains anything")
     min_camera_z_m: float = Field(0.12, description="candidates below this height are not generated")
-    clearance_m: float = Field(0.06, ge=0, le=0.5, description="candidates this close to occupied cells are dropped")
+    clearance_m: float = Field(0.12, ge=0, le=0.5, description="candidates this close to occupied cells are dropped")
     unknown_visibility: float = Field(0.95, gt=0, le=1,
                                       description="P[o=0] in eq. 8 of an unknown cell no ray has ended before")
     shadow_visibility: float = Field(0.5, gt=0, le=1,
@@ -76,7 +76,7 @@ class NBVConfig(_Strict):
     max_range_m: float = Field(0.8, gt=0.1, le=5)
     frontier_reach_voxels: int = Field(1, ge=1, le=10, description="how far a drawing cell may be from the unknown")
     min_frontier_cluster: int = Field(3, ge=1, le=1000)
-    aim_ahead_m: float = Field(0.0, ge=0, le=0.5,
+    aim_ahead_m: float = Field(0.08, ge=0, le=0.5,
                                description="look this far past the frontier centroid along the drawing (0: at it, as the paper)")
     cnbv_angle_steps: int = Field(3, ge=1, le=9, description="C-NBV: orientations per axis (pitch, yaw)")
     cnbv_angle_step_deg: float = Field(15.0, gt=0, le=45, description="C-NBV: spacing of those orientations")
