@@ -111,12 +111,15 @@ def run_record(scene: str, category: int | None, planner: str, seed: int, result
 
 
 class Progress:
-    """A self-drawn bar on stderr: a line per finished run, with elapsed time and ETA."""
+    """A self-drawn bar on stderr: a line per finished run, with elapsed time and ETA. The ETA uses each
+    planner's mean wall time so far (planners differ by 10x and more), else the mean of all scans."""
 
-    def __init__(self, total: int, stream: TextIO | None = None):
-        self.total, self.done, self.stream = total, 0, stream if stream is not None else sys.stderr
+    def __init__(self, planners: list[str | None], stream: TextIO | None = None):
+        """`planners`: the planner of each run in order, None for runs that scan nothing."""
+        self.planners = planners
+        self.total, self.done, self.stream = len(planners), 0, stream if stream is not None else sys.stderr
         self.t0 = time.perf_counter()
-        self.scan_walls: list[float] = []  # runs that built a twin (import-error rows take no time)
+        self.walls: dict[str, list[float]] = {}
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
 
     def _bar(self, n: int, width: int = 24) -> str:
@@ -124,12 +127,14 @@ class Progress:
         return "[" + "#" * fill + "." * (width - fill) + "]"
 
     def _eta(self) -> str:
-        left = self.total - self.done
+        left = [p for p in self.planners[self.done:] if p is not None]
         if not left:
             return "0:00"
-        if not self.scan_walls:
+        every = [w for ws in self.walls.values() for w in ws]
+        if not every:
             return "?"
-        return _hms(left * sum(self.scan_walls) / len(self.scan_walls))
+        mean_all = sum(every) / len(every)
+        return _hms(sum(sum(self.walls[p]) / len(self.walls[p]) if p in self.walls else mean_all for p in left))
 
     def start(self, label: str) -> None:
         line = f"{self._bar(self.done)} {self.done}/{self.total} running {label}  elapsed {self._elapsed()}  ETA {self._eta()}"
@@ -139,10 +144,11 @@ class Progress:
             self.stream.write(line + "\n")
         self.stream.flush()
 
-    def finish(self, label: str, rec: dict, scanned: bool) -> None:
+    def finish(self, label: str, rec: dict) -> None:
+        p = self.planners[self.done]
         self.done += 1
-        if scanned:
-            self.scan_walls.append(rec["wall_s"])
+        if p is not None:
+            self.walls.setdefault(p, []).append(rec["wall_s"])
         if rec["error"]:
             status = "ERROR " + rec["error"].splitlines()[0][:100]
         else:
@@ -202,7 +208,7 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
     }
     json_path = out / "bench.json"
     grid = [(s, p, k) for s in scenes for p in planners for k in range(seeds)]
-    bar = Progress(len(grid), stream)
+    bar = Progress([None if import_errors[p] else p for _, p, _ in grid], stream)
     if memory:
         tracemalloc.start()
     try:
@@ -213,14 +219,12 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
                 rec = run_record(scene, categories[scene], planner, seed,
                                  ScanResult(scene, planner, error=import_errors[planner], terminated_by="error"),
                                  None, 0.0, None)
-                scanned = False
             else:
                 rec = _one_run(cfg, cfg_path, scene, categories[scene], planner, seed, out, memory, run_scan_in_twin)
-                scanned = True
             doc["runs"].append(rec)
             doc["process"] = {"max_rss_mb": max_rss_mb(), "wall_s": round(time.perf_counter() - t_start, 1)}
             write_json(json_path, doc)
-            bar.finish(label, rec, scanned)
+            bar.finish(label, rec)
         doc["complete"] = True
     finally:
         if memory:

@@ -29,7 +29,8 @@ def _bench(args: argparse.Namespace) -> int:
 
 def _print_summary(r, run_dir: Path) -> None:
     rows = [
-        ("scene", r.scene), ("planner", r.planner), ("steps (viewpoints)", r.steps),
+        ("scene", r.scene), ("planner", r.planner),
+        ("views", f"{r.steps} captured (initial included; the paper's viewpoints: {max(r.steps - 1, 0)})"),
         ("planning time", f"{r.planning_s:.2f} s total, {r.step_s:.3f} s/step"),
         ("capture time", f"{r.capture_s:.2f} s"),
         ("motion planning", f"{r.motion_planning_s:.2f} s"),

@@ -28,7 +28,8 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
     twin_cfg = cfg.twin.model_copy(update={"camera": cam_cfg})
     run_dir = new_run_dir(out or cfg.runs_dir, scene.name, planner)
     recorder = ScanRecorder(run_dir / "scan.rrd", f"{scene.name}-{planner}", cfg.rerun_connect)
-    recorder.log_scene(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points)
+    result = ScanResult(scene=scene.name, planner=planner)
+    job = None
 
     def report(rec: StepRecord) -> None:
         if progress:
@@ -36,12 +37,12 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
                   f"{rec.candidates} candidates, planning {rec.planning_s:.3f} s, motion {rec.motion_s:.2f} s",
                   file=sys.stderr, flush=True)
 
-    with Twin(scene, twin_cfg) as twin:
-        job = ScanJob(twin.arm, twin.camera, planner, pcfg, cfg.motion, recorder, report)
-        twin.arm.reset(twin_cfg.home_q)
-        candidates = scene.initial_view_candidates
-        result = job.run(scene.name, candidates, scene.gt_points)
-    try:
+    try:  # whatever happens, the run folder ends with a result.json and a closed recording
+        recorder.log_scene(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points)
+        with Twin(scene, twin_cfg) as twin:
+            job = ScanJob(twin.arm, twin.camera, planner, pcfg, cfg.motion, recorder, report)
+            twin.arm.reset(twin_cfg.home_q)
+            result = job.run(scene.name, scene.initial_view_candidates, scene.gt_points)
         write_ply(run_dir / "drawing.ply", job.drawing)
         write_ply(run_dir / "surface.ply", job.surface)
         coverage_figure(run_dir / "coverage.png", scene.gt_points, job.drawing.xyz, np.array(result.viewpoints),
@@ -49,6 +50,10 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
                         f"{scene.name} / {planner}: {result.steps} views, coverage {result.coverage_percent:.1f} %")
         if job.first_color is not None:
             save_png(run_dir / "view0.png", job.first_color)
+    except Exception as e:
+        result.error = result.error or f"{type(e).__name__}: {e}"
+        result.terminated_by = result.terminated_by or "error"
+        raise
     finally:
         write_json(run_dir / "result.json", {"schema_version": 1, "cell_id": cfg.cell_id,
                                              "scene_ref": scene_ref, **result.to_dict()})

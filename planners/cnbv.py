@@ -33,7 +33,9 @@ class ConstrainedNBV:
         n = self.cfg.cnbv_angle_steps
         offs = (np.arange(n) - (n - 1) / 2) * a
         self._turns = [(y, p) for y in offs for p in offs]
-        self._given_up: list[np.ndarray] = []
+        self._given_up: list[np.ndarray] = []  # targets that proved unreachable or without gain
+        self._targets: list[np.ndarray] = []  # the target of every plan handed out
+        self._first_gain: float | None = None
 
     def reject(self, plan: ViewPlan) -> None:
         if plan.target is not None:
@@ -43,7 +45,7 @@ class ConstrainedNBV:
         """S_k = ∪ S(f): lattice positions in the shell [min_standoff, search_radius] of any frontier
         cell (one lattice for all, so overlapping shells do not duplicate candidates)."""
         cfg = self.cfg
-        sp = cfg.candidate_spacing_m
+        sp = cfg.cnbv_candidate_spacing_m
         lo = np.floor((frontier.min(axis=0) - cfg.search_radius_m) / sp) * sp
         hi = frontier.max(axis=0) + cfg.search_radius_m
         axes = [np.arange(lo[i], hi[i] + sp / 2, sp) for i in range(3)]
@@ -60,15 +62,21 @@ class ConstrainedNBV:
         labels, n = frontier_clusters(grid.frontier(cfg.frontier_reach_voxels), cfg.min_frontier_cluster)
         ijk = np.argwhere(labels > 0)
         frontier = grid.centers(ijk)
+        # the same bookkeeping as G-NBV: frontier given up, or looked at often enough, is dropped
+        near = 6 * grid.voxel
         if n and self._given_up:
             d, _ = cKDTree(np.asarray(self._given_up)).query(frontier, k=1)
-            keep = d > 6 * grid.voxel
+            keep = d > near
+            ijk, frontier = ijk[keep], frontier[keep]
+        if len(frontier) and self._targets:
+            visits = np.array([len(v) for v in cKDTree(np.asarray(self._targets)).query_ball_point(frontier, near)])
+            keep = visits < cfg.max_target_visits
             ijk, frontier = ijk[keep], frontier[keep]
         timings = {"frontier_s": time.perf_counter() - t0}
         empty = np.zeros((0, 4, 4))
         if len(frontier) == 0:
             return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "frontier", timings=timings)
-        eyes = self._search_space(grid, frontier)
+        eyes = self._search_space(grid, frontier[:: max(1, len(frontier) // cfg.cnbv_max_frontier)])
         # each position looks at its nearest frontier cell, within the cone of that cell's surface
         _, near = cKDTree(frontier).query(eyes, k=1)
         targets = frontier[near]
@@ -92,7 +100,12 @@ class ConstrainedNBV:
         q = nbv.quality(gain, np.linalg.norm(E - state.camera_pose[:3, 3], axis=1), cfg.lam)
         rank = np.argsort(-q, kind="stable")
         timings["plan_s"] = time.perf_counter() - t0
-        stop = gain.max() < cfg.min_gain or q[rank[0]] < cfg.delta_q
+        best = float(gain.max())
+        if self._first_gain is None:
+            self._first_gain = best
+        stop = best < max(cfg.min_gain, cfg.min_gain_fraction * self._first_gain) or q[rank[0]] < cfg.delta_q
         target = np.tile(targets, (len(self._turns), 1))[rank[0]]
+        if not stop:
+            self._targets.append(target)
         return ViewPlan(poses_from(E[rank], R[rank]), q[rank], gain[rank], bool(stop), "quality" if stop else "",
                         target=target, frontier=frontier, timings=timings)

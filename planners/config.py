@@ -78,6 +78,8 @@ class NBVConfig(_Strict):
     min_frontier_cluster: int = Field(3, ge=1, le=1000)
     aim_ahead_m: float = Field(0.08, ge=0, le=0.5,
                                description="look this far past the frontier centroid along the drawing (0: at it, as the paper)")
+    cnbv_candidate_spacing_m: float = Field(0.07, ge=0.01, le=0.3, description="C-NBV: lattice of its larger search space")
+    cnbv_max_frontier: int = Field(400, ge=1, le=100_000, description="C-NBV: frontier cells seeding search spaces, at most")
     cnbv_angle_steps: int = Field(3, ge=1, le=9, description="C-NBV: orientations per axis (pitch, yaw)")
     cnbv_angle_step_deg: float = Field(15.0, gt=0, le=45, description="C-NBV: spacing of those orientations")
     global_view_directions: int = Field(120, ge=8, le=5000, description="global: candidates on the view sphere")

@@ -249,3 +249,16 @@ def test_quick_bench_end_to_end(tmp_path):
         assert row in md, row
     for name in ("coverage.png", "step_time.png", "table3_smooth_cylinder.png", "table3_round_tank.png"):
         assert (out / name).stat().st_size > 1000, name
+
+
+def test_progress_eta_per_planner():
+    err = io.StringIO()
+    bar = bench.Progress(["gnbv", "cnbv", None, "gnbv", "cnbv"], err)
+    bar.start("a")
+    assert "ETA ?" in err.getvalue()
+    bar.finish("a", {"wall_s": 10.0, "error": None, "views": 3, "coverage": {"percent": 90.0}, "planning_s": 1.0})
+    bar.finish("b", {"wall_s": 300.0, "error": None, "views": 3, "coverage": {"percent": 90.0}, "planning_s": 1.0})
+    bar.finish("c", {"wall_s": 0.0, "error": "planner 'x' does not import", "views": 0,
+                     "coverage": {"percent": 0.0}, "planning_s": 0.0})
+    last = err.getvalue().splitlines()[-1]
+    assert "3/5" in last and "ERROR planner 'x'" in last and "ETA 5:10" in last  # 10 s + 300 s left
