@@ -99,21 +99,6 @@ class OccupancyGrid:
         out[box] = near_unknown & near_drawing & ~unknown
         return out
 
-    def expected_entropy_decrease(self) -> np.ndarray:
-        """h(g) of eq. 6 for one more measurement: H(p) - E[H(p')], the expectation over a hit
-        (probability p) and a miss, with the sensor's log-odds increments. Nats."""
-        L = self.logodds.astype(np.float64)
-
-        def H(l):
-            p = 1.0 / (1.0 + np.exp(-l))
-            p = np.clip(p, 1e-12, 1 - 1e-12)
-            return -(p * np.log(p) + (1 - p) * np.log(1 - p))
-
-        p = 1.0 / (1.0 + np.exp(-L))
-        l_hit = np.minimum(L + self.cfg.l_hit, self.cfg.l_max)
-        l_miss = np.maximum(L + self.cfg.l_miss, self.cfg.l_min)
-        return (H(L) - (p * H(l_hit) + (1 - p) * H(l_miss))).astype(np.float32)
-
 
 def frontier_clusters(frontier: np.ndarray, min_size: int) -> tuple[np.ndarray, int]:
     """Connected components (26-neighbourhood) of the frontier, small ones dropped as noise.
