@@ -1,0 +1,76 @@
+"""The probabilistic planners on a synthetic scan whose answer is known: a painted stripe on a table,
+seen by one view whose edge cuts the stripe."""
+
+import numpy as np
+import pytest
+
+from planners.base import ScanState
+from planners.clouds import Cloud
+from planners.config import PlannersConfig
+from planners.grid import OccupancyGrid
+from planners.views import look_at_rotations
+
+K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+SIZE = (320, 240)
+
+
+def _state():
+    cfg = PlannersConfig()
+    grid = OccupancyGrid(cfg.grid)
+    cam = np.array([0.45, -0.15, 0.45])
+    # the table top z = 0.10 seen for x in [0.3, 0.6], y in [-0.35, 0.0]: the view ends at y = 0
+    xs, ys = np.meshgrid(np.arange(0.30, 0.60, 0.003), np.arange(-0.35, 0.0, 0.003))
+    table = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.10)], 1).astype(np.float32)
+    grid.integrate(cam, table)
+    paint = np.abs(table[:, 0] - 0.45) < 0.01  # a stripe along y, running out of view at y = 0
+    rgb = np.where(paint[:, None], [220, 20, 20], [120, 120, 120]).astype(np.uint8)
+    surface = Cloud(table, rgb, np.broadcast_to(cam.astype(np.float32), table.shape).copy())
+    drawing = surface.select(paint & (table[:, 1] > -0.25))
+    grid.set_drawing(drawing.xyz)
+    T = np.eye(4)
+    T[:3, :3] = look_at_rotations(cam[None], np.array([[0.45, -0.15, 0.10]]))[0]
+    T[:3, 3] = cam
+    return cfg, ScanState(0, grid, surface, drawing, surface, T, T, K, SIZE, cam[None])
+
+
+@pytest.mark.parametrize("name", ["gnbv", "cnbv"])
+def test_feature_guided_planners_look_where_the_stripe_leaves_the_view(name):
+    from cellctl.scan import make_planner
+
+    cfg, state = _state()
+    plan = make_planner(name, cfg).next_view(state)
+    assert not plan.stop
+    assert len(plan.poses) > 10 and np.all(np.diff(plan.quality) <= 1e-12)  # ranked best first
+    assert np.all(np.abs(plan.frontier[:, 1]) < 0.04)  # the frontier is at the cut, not along the stripe
+    best = plan.poses[0]
+    assert best[2, 3] > 0.25  # above the table, looking down at it
+    # the best view points at the unexplored side: its optical axis meets the table beyond the cut
+    eye, axis = best[:3, 3], best[:3, 2]
+    hit = eye + axis * (0.10 - eye[2]) / axis[2]
+    assert hit[1] > -0.05, hit
+
+
+def test_global_planner_ignores_the_drawing_and_stops_when_gain_is_exhausted():
+    from cellctl.scan import make_planner
+
+    cfg, state = _state()
+    planner = make_planner("global", cfg)
+    plan = planner.next_view(state)
+    assert not plan.stop and len(plan.poses)
+    assert plan.gain[0] > 0
+    # the target is the centre of the observed object, not the drawing's frontier
+    assert np.linalg.norm(plan.target[:2] - [0.45, -0.175]) < 0.05
+    state.grid.logodds[:] = -2.0  # everything known: nothing left to gain
+    state.grid.logodds[tuple(state.grid.index_of(state.surface.xyz)[0].T)] = 3.5
+    assert planner.next_view(state).stop
+
+
+def test_no_drawing_means_no_frontier_and_a_clean_stop():
+    from cellctl.scan import make_planner
+
+    cfg, state = _state()
+    state.grid.set_drawing(np.zeros((0, 3)))
+    state.drawing = Cloud.empty()
+    for name in ("gnbv", "cnbv"):
+        plan = make_planner(name, cfg).next_view(state)
+        assert plan.stop and plan.reason == "frontier"
