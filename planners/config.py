@@ -85,7 +85,7 @@ class NBVConfig(_Strict):
     global_view_directions: int = Field(120, ge=8, le=5000, description="global: candidates on the view sphere")
     global_standoff_m: float = Field(0.35, gt=0.1, le=2, description="global: sphere radius beyond the object")
     global_margin_m: float = Field(0.1, ge=0, le=1, description="global: unknown cells this far around the object count")
-    global_stop_fraction: float = Field(0.1, gt=0, lt=1, description="global: stop when the best gain falls below this share of the first")
+    global_stop_fraction: float = Field(0.03, gt=0, lt=1, description="global: stop when the best gain falls below this share of the first")
     floor_z_m: float = Field(0.02, description="global: occupied cells below this height are the floor")
     revisit_angle_deg: float = Field(25.0, ge=0, le=90,
                                      description="no candidate within this angle (seen from the target) of a past view")

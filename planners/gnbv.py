@@ -1,5 +1,6 @@
 """Guided NBV (§V-C, Alg. 3): the frontier reduced to the centroid of its nearest cluster, a sphere of
-candidate positions around it, each looking at it, scored by Q in one kernel call."""
+candidate positions around it, each looking at it (or just past it, along the drawing), scored by Q
+in one kernel call."""
 
 from __future__ import annotations
 
@@ -75,11 +76,12 @@ class GuidedNBV:
         return state.viewpoints[idx] if idx else np.zeros((0, 3))
 
     def _score(self, state: ScanState, target: np.ndarray, normal: np.ndarray | None, cone_deg: float,
-               weights, p_free: np.ndarray):
+               weights, p_free: np.ndarray, occupied: "nbv.OccupiedIndex"):
         """Ranked (poses, Q, gain) of the candidates around one target, or None if none is worth it."""
         cfg, grid = self.cfg, state.grid
         eyes = target + self._lattice
-        eyes = eyes[nbv.feasible_eyes(grid, eyes, target, normal, cfg, self._views_of(target, state), cone_deg)]
+        eyes = eyes[nbv.feasible_eyes(grid, eyes, target, normal, cfg, self._views_of(target, state), cone_deg,
+                                      occupied=occupied)]
         if len(eyes) == 0:
             return None
         R = look_at_rotations(eyes, self._aim_point(state, target))
@@ -105,16 +107,17 @@ class GuidedNBV:
         # nearest tried, so a single unresolvable corner does not end the scan.
         order = np.argsort(np.linalg.norm(cents - cam, axis=1)) if len(cents) else np.zeros(0, int)
         p_free = nbv.visibility_field(grid, cfg)
+        occupied = nbv.OccupiedIndex(grid)
         for c in order[usable[order]][:4]:
             target = cents[c]
             normal = nbv.outward_normal(state.surface, target)
             weights = nbv.cell_weights(grid, ijk[lab == c], cfg)
             # Square-on views first (the D435 returns nothing at grazing incidence); only if none of
-            # them gains anything, a relaxed cone.
-            # Last, no cone at all: at an edge the normal describes the side already seen, and the
-            # drawing goes on round the corner.
+            # them gains anything a relaxed cone, and last no cone at all: at an edge the normal
+            # describes the side already seen while the drawing goes on round the corner.
             for cone in (cfg.max_view_angle_deg, cfg.relaxed_view_angle_deg, None):
-                scored = self._score(state, target, None if cone is None else normal, cone or 90.0, weights, p_free)
+                scored = self._score(state, target, None if cone is None else normal, cone or 90.0, weights, p_free,
+                                     occupied)
                 if scored is not None:
                     break
             if scored is None:

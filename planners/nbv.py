@@ -94,9 +94,19 @@ def quality(gain: np.ndarray, cost: np.ndarray, lam: float) -> np.ndarray:
     return lam * g - (1.0 - lam) * c
 
 
+class OccupiedIndex:
+    """The occupied cells of one grid state, indexed once per planning step rather than per query."""
+
+    def __init__(self, grid: OccupancyGrid):
+        occ = grid.occupied
+        self.flat = occ.reshape(-1).view(np.uint8)
+        ijk = np.argwhere(occ)
+        self.tree = cKDTree(grid.centers(ijk)) if len(ijk) else None
+
+
 def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, normal: np.ndarray | None,
                   cfg: NBVConfig, past_views: np.ndarray | None = None, cone_deg: float | None = None,
-                  line_of_sight: bool = True) -> np.ndarray:
+                  line_of_sight: bool = True, occupied: OccupiedIndex | None = None) -> np.ndarray:
     """Mask of candidate positions a camera may occupy and see its target from: inside the grid,
     above the floor limit, clear of occupied cells, not inside what was seen to be behind a surface,
     on the observed side of the surface within the viewing cone, not a repeat of a past viewing
@@ -123,9 +133,9 @@ def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, nor
         pv = past_views[None, :, :] - targets[:, None, :]
         pv /= np.maximum(np.linalg.norm(pv, axis=2, keepdims=True), 1e-9)
         ok &= np.einsum("mj,mpj->mp", u, pv).max(axis=1) < np.cos(np.deg2rad(cfg.revisit_angle_deg))
-    occ = np.argwhere(grid.occupied)
-    if len(occ) and ok.any() and margin > 0:
-        d, _ = cKDTree(grid.centers(occ)).query(eyes[ok], k=1, distance_upper_bound=margin)
+    occupied = occupied or OccupiedIndex(grid)
+    if occupied.tree is not None and ok.any() and margin > 0:
+        d, _ = occupied.tree.query(eyes[ok], k=1, distance_upper_bound=margin)
         idx = np.flatnonzero(ok)
         ok[idx[np.isfinite(d)]] = False
     if ok.any() and line_of_sight:
@@ -135,8 +145,7 @@ def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, nor
         L = np.linalg.norm(v, axis=1, keepdims=True)
         stop_short = e + v * np.clip((L - 3 * grid.voxel) / np.maximum(L, 1e-9), 0, 1)
         blocked = raycast.segments_blocked(np.ascontiguousarray(e), np.ascontiguousarray(stop_short), grid.lo,
-                                           grid.voxel, np.asarray(grid.shape, dtype=np.int64),
-                                           grid.occupied.reshape(-1).view(np.uint8))
+                                           grid.voxel, np.asarray(grid.shape, dtype=np.int64), occupied.flat)
         ok[idx[blocked]] = False
     return ok
 
