@@ -60,8 +60,10 @@ class GlobalNBV:
         corners = np.array([box_lo, box_hi], dtype=np.float64) * grid.voxel + grid.lo
         ok = nbv.feasible_eyes(grid, eyes, center, None, cfg, line_of_sight=False)  # it looks at the whole object
         eyes = eyes[ok]
+        # no candidate left (all spent or unreachable) is a different end from exhausted gain
         if len(eyes) == 0:
-            return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "quality", timings={"plan_s": time.perf_counter() - t0})
+            return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "no_candidates",
+                            timings={"plan_s": time.perf_counter() - t0})
         R = look_at_rotations(eyes, center)
         gain = nbv.gains(grid, eyes, R, (w.reshape(-1), corners), nbv.visibility_field(grid, cfg), state.K,
                          state.image_size, cfg)
