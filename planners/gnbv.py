@@ -110,12 +110,15 @@ class GuidedNBV:
         occupied = nbv.OccupiedIndex(grid)
         for c in order[usable[order]][:4]:
             target = cents[c]
+            scored = None
             normal = nbv.outward_normal(state.surface, target)
             weights = nbv.cell_weights(grid, ijk[lab == c], cfg)
             # Square-on views first (the D435 returns nothing at grazing incidence); only if none of
             # them gains anything a relaxed cone, and last no cone at all: at an edge the normal
             # describes the side already seen while the drawing goes on round the corner.
-            for cone in (cfg.max_view_angle_deg, cfg.relaxed_view_angle_deg, None):
+            # A target already looked at without being resolved starts further down that list.
+            tiers = (cfg.max_view_angle_deg, cfg.relaxed_view_angle_deg, None)
+            for cone in tiers[min(len(self._views_of(target, state)), len(tiers) - 1):]:
                 scored = self._score(state, target, None if cone is None else normal, cone or 90.0, weights, p_free,
                                      occupied)
                 if scored is not None:
