@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from configs.loading import load_yaml_model as _load_yaml_model
 
 
 class _Strict(BaseModel):
@@ -123,31 +124,9 @@ class ConfigError(ValueError):
     """A config file is unreadable or invalid; the message names the file and the field."""
 
 
-def format_validation_error(source: str, err: ValidationError) -> str:
-    lines = []
-    for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
-        lines.append(f"{source}: {loc}: {e['msg']}")
-    return "\n".join(lines)
-
-
 def load_yaml_model(path: str | Path, model: type[BaseModel]) -> BaseModel:
     """Load and validate a YAML file; every failure is a ConfigError naming the file and field."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read config: {e.strerror}") from None
-    try:
-        data = yaml.safe_load(text) or {}
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: not valid YAML: {e}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: (top level): expected a mapping, got {type(data).__name__}")
-    try:
-        return model.model_validate(data)
-    except ValidationError as e:
-        raise ConfigError(format_validation_error(str(path), e)) from None
+    return _load_yaml_model(path, model, ConfigError, "config")
 
 
 def load_planners_config(path: str | Path | None = None) -> PlannersConfig:

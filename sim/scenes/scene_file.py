@@ -12,10 +12,10 @@ from typing import Annotated
 
 import numpy as np
 import trimesh
-import yaml
-from pydantic import AllowInfNan, BaseModel, ConfigDict, Field, Strict, ValidationError, model_validator
+from pydantic import AllowInfNan, BaseModel, ConfigDict, Field, Strict, model_validator
 from scipy.spatial.transform import Rotation
 
+from configs.loading import load_yaml_model
 from sim.scenes.catalog import Blueprint, assemble_scene
 from sim.scenes.model import Scene
 from sim.scenes.paint import closest_points, resample_polyline
@@ -74,13 +74,6 @@ class SceneSpec(_Strict):
     colors: ColorsSpec | None = None
 
 
-def _field(loc) -> str:
-    out = ""
-    for part in loc:
-        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
-    return out or "(top level)"
-
-
 def pose_matrix(pose: PoseSpec) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = Rotation.from_euler("xyz", pose.rpy_deg, degrees=True).as_matrix()
@@ -90,21 +83,7 @@ def pose_matrix(pose: PoseSpec) -> np.ndarray:
 
 def read_scene_spec(path: str | Path) -> SceneSpec:
     """Parse and validate the YAML alone (no mesh loading)."""
-    try:
-        text = Path(path).read_text()
-    except OSError as exc:
-        raise SceneError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise SceneError(f"{path}: invalid YAML: {exc}") from None
-    if not isinstance(data, dict):
-        raise SceneError(f"{path}: (top level): expected a mapping of scene fields, got {type(data).__name__}")
-    try:
-        return SceneSpec.model_validate(data)
-    except ValidationError as exc:
-        lines = [f"{path}: {_field(e['loc'])}: {e['msg']}" for e in exc.errors()]
-        raise SceneError("\n".join(lines)) from None
+    return load_yaml_model(path, SceneSpec, SceneError, "scene")
 
 
 def _load_mesh(path: str | Path, spec: SceneSpec) -> trimesh.Trimesh:
