@@ -16,6 +16,66 @@ def _flat(i, j, k, ny, nz):
     return (i * ny + j) * nz + k
 
 
+@nb.njit(cache=True, inline="always")
+def _clip(ox, oy, oz, dx, dy, dz, t0, t1, blo, bhi):
+    """Slab test: the part [t0, t1] of the ray inside the box [blo, bhi] (empty when t0 >= t1)."""
+    o = (ox, oy, oz)
+    d = (dx, dy, dz)
+    for a in range(3):
+        if abs(d[a]) < 1e-12:
+            if o[a] < blo[a] or o[a] >= bhi[a]:
+                return 1.0, 0.0
+        else:
+            ta = (blo[a] - o[a]) / d[a]
+            tb = (bhi[a] - o[a]) / d[a]
+            if ta > tb:
+                ta, tb = tb, ta
+            if ta > t0:
+                t0 = ta
+            if tb < t1:
+                t1 = tb
+    return t0, t1
+
+
+@nb.njit(cache=True, inline="always")
+def _dda_start(ox, oy, oz, dx, dy, dz, t0, lo, voxel, nx, ny, nz):
+    """Amanatides-Woo set-up at distance t0: the cell, the steps, and the distances to the next
+    cell boundary on each axis and between boundaries."""
+    eps = 1e-7
+    i = min(max(int(np.floor((ox + dx * (t0 + eps) - lo[0]) / voxel)), 0), nx - 1)
+    j = min(max(int(np.floor((oy + dy * (t0 + eps) - lo[1]) / voxel)), 0), ny - 1)
+    k = min(max(int(np.floor((oz + dz * (t0 + eps) - lo[2]) / voxel)), 0), nz - 1)
+    si = 1 if dx > 0 else -1
+    sj = 1 if dy > 0 else -1
+    sk = 1 if dz > 0 else -1
+    inf = 1e30
+    tdx = voxel / abs(dx) if abs(dx) > 1e-12 else inf
+    tdy = voxel / abs(dy) if abs(dy) > 1e-12 else inf
+    tdz = voxel / abs(dz) if abs(dz) > 1e-12 else inf
+    tx = (lo[0] + (i + (1 if si > 0 else 0)) * voxel - ox) / dx if abs(dx) > 1e-12 else inf
+    ty = (lo[1] + (j + (1 if sj > 0 else 0)) * voxel - oy) / dy if abs(dy) > 1e-12 else inf
+    tz = (lo[2] + (k + (1 if sk > 0 else 0)) * voxel - oz) / dz if abs(dz) > 1e-12 else inf
+    return i, j, k, si, sj, sk, tx, ty, tz, tdx, tdy, tdz
+
+
+@nb.njit(cache=True, inline="always")
+def _dda_next(i, j, k, si, sj, sk, tx, ty, tz, tdx, tdy, tdz, nx, ny, nz):
+    """One step to the neighbouring cell the ray enters next; inside is False once it leaves."""
+    if tx <= ty and tx <= tz:
+        i += si
+        tx += tdx
+        inside = 0 <= i < nx
+    elif ty <= tz:
+        j += sj
+        ty += tdy
+        inside = 0 <= j < ny
+    else:
+        k += sk
+        tz += tdz
+        inside = 0 <= k < nz
+    return i, j, k, tx, ty, tz, inside
+
+
 @nb.njit(cache=True, parallel=True)
 def mark_scan(origin, points, lo, voxel, shape, truncation, shadow_depth, marks):
     """Mark the cells one scan touches: HIT where a point lands, FREE along each ray before it
@@ -54,71 +114,19 @@ def mark_scan(origin, points, lo, voxel, shape, truncation, shadow_depth, marks)
 
 @nb.njit(cache=True, inline="always")
 def _traverse_mark(ox, oy, oz, dx, dy, dz, t_start, t_end, lo, voxel, nx, ny, nz, marks, value):
-    # clip [t_start, t_end] to the grid box first
-    t0 = t_start
-    t1 = t_end
-    o = (ox, oy, oz)
-    d = (dx, dy, dz)
-    n = (nx, ny, nz)
-    for a in range(3):
-        lo_a = lo[a]
-        hi_a = lo[a] + n[a] * voxel
-        if abs(d[a]) < 1e-12:
-            if o[a] < lo_a or o[a] >= hi_a:
-                return
-        else:
-            ta = (lo_a - o[a]) / d[a]
-            tb = (hi_a - o[a]) / d[a]
-            if ta > tb:
-                ta, tb = tb, ta
-            if ta > t0:
-                t0 = ta
-            if tb < t1:
-                t1 = tb
+    hi = (lo[0] + nx * voxel, lo[1] + ny * voxel, lo[2] + nz * voxel)
+    t0, t1 = _clip(ox, oy, oz, dx, dy, dz, t_start, t_end, lo, hi)
     if t0 >= t1:
         return
-    eps = 1e-7
-    px = ox + dx * (t0 + eps)
-    py = oy + dy * (t0 + eps)
-    pz = oz + dz * (t0 + eps)
-    i = min(max(int(np.floor((px - lo[0]) / voxel)), 0), nx - 1)
-    j = min(max(int(np.floor((py - lo[1]) / voxel)), 0), ny - 1)
-    k = min(max(int(np.floor((pz - lo[2]) / voxel)), 0), nz - 1)
-    si = 1 if dx > 0 else -1
-    sj = 1 if dy > 0 else -1
-    sk = 1 if dz > 0 else -1
-    inf = 1e30
-    tdx = voxel / abs(dx) if abs(dx) > 1e-12 else inf
-    tdy = voxel / abs(dy) if abs(dy) > 1e-12 else inf
-    tdz = voxel / abs(dz) if abs(dz) > 1e-12 else inf
-    nbx = lo[0] + (i + (1 if si > 0 else 0)) * voxel
-    nby = lo[1] + (j + (1 if sj > 0 else 0)) * voxel
-    nbz = lo[2] + (k + (1 if sk > 0 else 0)) * voxel
-    tx = (nbx - ox) / dx if abs(dx) > 1e-12 else inf
-    ty = (nby - oy) / dy if abs(dy) > 1e-12 else inf
-    tz = (nbz - oz) / dz if abs(dz) > 1e-12 else inf
-    while True:
+    i, j, k, si, sj, sk, tx, ty, tz, tdx, tdy, tdz = _dda_start(ox, oy, oz, dx, dy, dz, t0, lo, voxel, nx, ny, nz)
+    inside = True
+    while inside:
         f = _flat(i, j, k, ny, nz)
         if marks[f] == 0:
             marks[f] = value
-        tn = min(tx, ty, tz)
-        if tn >= t1:
+        if min(tx, ty, tz) >= t1:
             return
-        if tx <= ty and tx <= tz:
-            i += si
-            tx += tdx
-            if i < 0 or i >= nx:
-                return
-        elif ty <= tz:
-            j += sj
-            ty += tdy
-            if j < 0 or j >= ny:
-                return
-        else:
-            k += sk
-            tz += tdz
-            if k < 0 or k >= nz:
-                return
+        i, j, k, tx, ty, tz, inside = _dda_next(i, j, k, si, sj, sk, tx, ty, tz, tdx, tdy, tdz, nx, ny, nz)
 
 
 @nb.njit(cache=True, parallel=True)
@@ -159,100 +167,30 @@ def view_gains(positions, rotations, ray_dirs, max_range, lo, voxel, shape, p_fr
 @nb.njit(cache=True, inline="always")
 def _box_exit(ox, oy, oz, dx, dy, dz, blo, bhi, max_range):
     """Distance at which the ray leaves the box, or -1 if it never enters it within max_range."""
-    t0 = 0.0
-    t1 = max_range
-    o = (ox, oy, oz)
-    d = (dx, dy, dz)
-    for a in range(3):
-        if abs(d[a]) < 1e-12:
-            if o[a] < blo[a] or o[a] > bhi[a]:
-                return -1.0
-        else:
-            ta = (blo[a] - o[a]) / d[a]
-            tb = (bhi[a] - o[a]) / d[a]
-            if ta > tb:
-                ta, tb = tb, ta
-            if ta > t0:
-                t0 = ta
-            if tb < t1:
-                t1 = tb
-    if t0 >= t1:
-        return -1.0
-    return t1
+    t0, t1 = _clip(ox, oy, oz, dx, dy, dz, 0.0, max_range, blo, bhi)
+    return t1 if t0 < t1 else -1.0
 
 
 @nb.njit(cache=True, inline="always")
 def _ray_gain(ox, oy, oz, dx, dy, dz, max_range, lo, voxel, nx, ny, nz, p_free, weight, stamp, tag):
-    t0 = 0.0
-    t1 = max_range
-    o = (ox, oy, oz)
-    d = (dx, dy, dz)
-    n = (nx, ny, nz)
-    for a in range(3):
-        lo_a = lo[a]
-        hi_a = lo[a] + n[a] * voxel
-        if abs(d[a]) < 1e-12:
-            if o[a] < lo_a or o[a] >= hi_a:
-                return 0.0
-        else:
-            ta = (lo_a - o[a]) / d[a]
-            tb = (hi_a - o[a]) / d[a]
-            if ta > tb:
-                ta, tb = tb, ta
-            if ta > t0:
-                t0 = ta
-            if tb < t1:
-                t1 = tb
+    hi = (lo[0] + nx * voxel, lo[1] + ny * voxel, lo[2] + nz * voxel)
+    t0, t1 = _clip(ox, oy, oz, dx, dy, dz, 0.0, max_range, lo, hi)
     if t0 >= t1:
         return 0.0
-    eps = 1e-7
-    px = ox + dx * (t0 + eps)
-    py = oy + dy * (t0 + eps)
-    pz = oz + dz * (t0 + eps)
-    i = min(max(int(np.floor((px - lo[0]) / voxel)), 0), nx - 1)
-    j = min(max(int(np.floor((py - lo[1]) / voxel)), 0), ny - 1)
-    k = min(max(int(np.floor((pz - lo[2]) / voxel)), 0), nz - 1)
-    si = 1 if dx > 0 else -1
-    sj = 1 if dy > 0 else -1
-    sk = 1 if dz > 0 else -1
-    inf = 1e30
-    tdx = voxel / abs(dx) if abs(dx) > 1e-12 else inf
-    tdy = voxel / abs(dy) if abs(dy) > 1e-12 else inf
-    tdz = voxel / abs(dz) if abs(dz) > 1e-12 else inf
-    nbx = lo[0] + (i + (1 if si > 0 else 0)) * voxel
-    nby = lo[1] + (j + (1 if sj > 0 else 0)) * voxel
-    nbz = lo[2] + (k + (1 if sk > 0 else 0)) * voxel
-    tx = (nbx - ox) / dx if abs(dx) > 1e-12 else inf
-    ty = (nby - oy) / dy if abs(dy) > 1e-12 else inf
-    tz = (nbz - oz) / dz if abs(dz) > 1e-12 else inf
+    i, j, k, si, sj, sk, tx, ty, tz, tdx, tdy, tdz = _dda_start(ox, oy, oz, dx, dy, dz, t0, lo, voxel, nx, ny, nz)
     vis = 1.0
     g = 0.0
-    while True:
+    inside = True
+    while inside:
         f = _flat(i, j, k, ny, nz)
         if stamp[f] != tag:
             stamp[f] = tag
             g += vis * weight[f]
         vis *= p_free[f]
-        if vis < 1e-4:
+        if vis < 1e-4 or min(tx, ty, tz) >= t1:
             return g
-        tn = min(tx, ty, tz)
-        if tn >= t1:
-            return g
-        if tx <= ty and tx <= tz:
-            i += si
-            tx += tdx
-            if i < 0 or i >= nx:
-                return g
-        elif ty <= tz:
-            j += sj
-            ty += tdy
-            if j < 0 or j >= ny:
-                return g
-        else:
-            k += sk
-            tz += tdz
-            if k < 0 or k >= nz:
-                return g
+        i, j, k, tx, ty, tz, inside = _dda_next(i, j, k, si, sj, sk, tx, ty, tz, tdx, tdy, tdz, nx, ny, nz)
+    return g
 
 
 @nb.njit(cache=True, parallel=True)
