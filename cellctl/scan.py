@@ -34,6 +34,10 @@ PLANNERS = {
 }
 
 
+REACH_TOL_M = 0.02  # a camera further than this from its planned pose did not reach the view
+REACH_TOL_DEG = 5.0
+
+
 class ScanError(RuntimeError):
     """The scan could not go on; the partial result is kept."""
 
@@ -66,6 +70,8 @@ class StepRecord:
     chosen_rank: int | None = None
     replans: int = 0
     coverage_percent: float | None = None  # against ground truth, when the scene has one (twin)
+    reach_error_m: float = 0.0  # camera position reached vs planned
+    reach_error_deg: float = 0.0  # optical axis reached vs planned
 
 
 @dataclass
@@ -105,6 +111,7 @@ class ScanJob:
         self.surface = Cloud.empty()
         self.drawing = Cloud.empty()
         self.empty_frames = 0
+        self.last_reach_error_m = self.last_reach_error_deg = 0.0
         self.first_color: np.ndarray | None = None  # the initial view, for the run folder's picture
         intr = camera.intrinsics
         self.K = intr.matrix()
@@ -122,6 +129,11 @@ class ScanJob:
                                  speed_factor=self.mcfg.speed_factor)
         ik_s = time.perf_counter() - t0
         err = self.arm.execute(JointTrajectory(path.times, path.positions, path.velocities))
+        # Did the camera get there? Without collision checking yet (issue 4) the arm can be stopped
+        # by the object on the way; a view from elsewhere must not count as the planned one.
+        T = self.arm.camera_pose()
+        self.last_reach_error_m = float(np.linalg.norm(T[:3, 3] - poses[idx][:3, 3]))
+        self.last_reach_error_deg = float(np.degrees(np.arccos(np.clip(T[:3, 2] @ poses[idx][:3, 2], -1.0, 1.0))))
         return idx, ik_s, float(path.duration), float(err)
 
     def move_to_initial(self, candidates: np.ndarray) -> tuple[int, float, float]:
@@ -232,6 +244,10 @@ class ScanJob:
                     raise Unreachable("planner offered no candidate for this target")
                 rank, ik_s, motion_s, err = self._move(plan.poses[:n])
                 rec.chosen_rank, rec.ik_s, rec.motion_s, rec.tracking_error_rad = rank, rec.ik_s + ik_s, motion_s, err
+                rec.reach_error_m, rec.reach_error_deg = self.last_reach_error_m, self.last_reach_error_deg
+                if rec.reach_error_m > REACH_TOL_M or rec.reach_error_deg > REACH_TOL_DEG:
+                    plan.tried = rank + 1
+                    self.planner.reject(plan)  # the view will not be where it was planned: give the target up
                 return plan
             except Unreachable:
                 plan.tried = min(n, len(plan.poses))
