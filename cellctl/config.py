@@ -8,7 +8,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from configs import CONFIG_DIR
-from planners.config import ConfigError, load_yaml_model  # noqa: F401  (re-exported for callers)
+from planners.config import load_yaml_model
 from sim.config import TwinConfig
 
 

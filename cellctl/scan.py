@@ -190,7 +190,6 @@ class ScanJob:
         return res
 
     def _explore(self, res: ScanResult, initial_pose: np.ndarray, gt_points: np.ndarray | None) -> None:
-        cfg = self.pcfg.nbv
         last_plan: ViewPlan | None = None
         for k in range(self.pcfg.max_steps):
             t0 = time.perf_counter()
