@@ -9,6 +9,7 @@ goes on. bench.json is rewritten after every run, so an interrupted bench keeps 
 from __future__ import annotations
 
 import importlib
+import itertools
 import math
 import os
 import platform
@@ -102,6 +103,10 @@ def run_record(scene: str, category: int | None, planner: str, seed: int, result
         "coverage": {"hit": int(result.coverage_hit), "total": int(result.coverage_total),
                      "percent": float(result.coverage_percent)},
         "terminated_by": result.terminated_by,
+        # after each captured view (the initial one first): drawing coverage and planning time so far,
+        # so planners can be compared at equal coverage, not only at their own stop
+        "coverage_by_view": [r.coverage_percent for r in result.records],
+        "planning_s_by_view": [round(x, 4) for x in itertools.accumulate(r.planning_s for r in result.records)],
         "peak_memory_mb": peak_memory_mb,
         "process_max_rss_mb": max_rss_mb(),
         "wall_s": round(wall_s, 2),

@@ -147,6 +147,42 @@ def ratio_rows(doc: dict, aggs: dict[tuple[str, str], Agg] | None = None) -> lis
     return rows
 
 
+def to_reach(run: dict, level: float) -> tuple[int | None, float | None]:
+    """(viewpoints, planning s) a run needed before its drawing coverage first reached `level` %, or
+    (None, None) if it never did. The initial view is viewpoint 0 and needs no planning."""
+    cov = run.get("coverage_by_view") or []
+    t = run.get("planning_s_by_view") or []
+    for i, c in enumerate(cov):
+        if c is not None and c >= level - 1e-9:
+            return i, (t[i - 1] if i > 0 and i - 1 < len(t) else 0.0)
+    return None, None
+
+
+def equal_coverage_rows(doc: dict, aggs: dict[tuple[str, str], Agg] | None = None,
+                        baseline: str = "global") -> list[dict]:
+    """Per scene, what G-NBV and the baseline needed to reach the same drawing coverage: the lower of
+    their two median final coverages. Medians over the runs that reached it."""
+    aggs = aggregate(doc) if aggs is None else aggs
+    rows = []
+    for scene in _order(doc, "scenes"):
+        g, b = aggs.get((scene, "gnbv")), aggs.get((scene, baseline))
+        if g is None or b is None or g.percent is None or b.percent is None:
+            continue
+        level = min(g.percent, b.percent)
+        row = {"scene": scene, "category": g.category, "level": level}
+        for name in ("gnbv", baseline):
+            runs = [r for r in doc["runs"] if r["scene"] == scene and r["planner"] == name and not r.get("error")]
+            reached = [to_reach(r, level) for r in runs]
+            ok = [x for x in reached if x[0] is not None]
+            row[name] = {"reached": len(ok), "runs": len(runs), "viewpoints": _median([x[0] for x in ok]),
+                         "planning_s": _median([x[1] for x in ok])}
+        gv, bv = row["gnbv"], row[baseline]
+        row["viewpoints_ratio"] = _ratio(bv["viewpoints"], gv["viewpoints"])
+        row["planning_ratio"] = _ratio(bv["planning_s"], gv["planning_s"])
+        rows.append(row)
+    return rows
+
+
 # --- markdown ---------------------------------------------------------------------------------------
 
 def _num(v: float | None, digits: int = 1) -> str:
@@ -236,6 +272,26 @@ def render_markdown(doc: dict) -> str:
         L.append(f"| median over scenes | {_num(med('cnbv_gnbv_step'), 1)} | {_num(med('paper_cnbv_gnbv_step'), 1)} | "
                  f"{_num(med('global_gnbv_viewpoints'), 2)} | {_num(med('global_gnbv_planning'), 2)} |")
     L.append("")
+
+    eq = equal_coverage_rows(doc, aggs)
+    if eq:
+        L += ["## Feature guidance at equal coverage", "",
+              "What G-NBV and the feature-agnostic `global` planner needed to reach the same drawing coverage: the "
+              "lower of their two median final coverages (from each run's coverage after every view). Viewpoints "
+              "exclude the initial view; planning time is eq. 10 up to that view. Medians over the runs that "
+              "reached the level (reached/runs).", "",
+              "| category (scene) | coverage level (%) | G-NBV viewpoints | global viewpoints | ratio | "
+              "G-NBV planning (s) | global planning (s) | ratio |", "|---|--:|--:|--:|--:|--:|--:|--:|"]
+        for r in eq:
+            g, b = r["gnbv"], r["global"]
+            L.append(f"| {_scene_label(r['scene'], r['category'])} | {_num(r['level'], 1)} | "
+                     f"{_count(g['viewpoints'])} ({g['reached']}/{g['runs']}) | {_count(b['viewpoints'])} "
+                     f"({b['reached']}/{b['runs']}) | {_num(r['viewpoints_ratio'], 2)} | {_num(g['planning_s'], 2)} | "
+                     f"{_num(b['planning_s'], 2)} | {_num(r['planning_ratio'], 2)} |")
+        if len(eq) > 1:
+            L.append(f"| median over scenes | | | | {_num(_median([r['viewpoints_ratio'] for r in eq]), 2)} | | | "
+                     f"{_num(_median([r['planning_ratio'] for r in eq]), 2)} |")
+        L.append("")
 
     errs = [r for r in doc["runs"] if r.get("error")]
     if errs:

@@ -72,6 +72,7 @@ class StepRecord:
     coverage_percent: float | None = None  # against ground truth, when the scene has one (twin)
     reach_error_m: float = 0.0  # camera position reached vs planned
     reach_error_deg: float = 0.0  # optical axis reached vs planned
+    contacts: list[dict] = field(default_factory=list)  # robot-scene contacts the twin saw on this move
 
 
 @dataclass
@@ -89,6 +90,7 @@ class ScanResult:
     coverage_total: int = 0
     coverage_percent: float = 0.0
     terminated_by: str = ""
+    motion_contacts: int = 0  # robot-scene contacts the twin reported over all moves (twin only)
     error: str | None = None
     viewpoints: list[list[float]] = field(default_factory=list)
     records: list[StepRecord] = field(default_factory=list)
@@ -112,6 +114,7 @@ class ScanJob:
         self.drawing = Cloud.empty()
         self.empty_frames = 0
         self.last_reach_error_m = self.last_reach_error_deg = 0.0
+        self.last_contacts: list[dict] = []
         self.first_color: np.ndarray | None = None  # the initial view, for the run folder's picture
         intr = camera.intrinsics
         self.K = intr.matrix()
@@ -129,6 +132,7 @@ class ScanJob:
                                  speed_factor=self.mcfg.speed_factor)
         ik_s = time.perf_counter() - t0
         err = self.arm.execute(JointTrajectory(path.times, path.positions, path.velocities))
+        self.last_contacts = list(getattr(self.arm, "last_motion_contacts", []))  # the twin's own check
         # Did the camera get there? Without collision checking yet (issue 4) the arm can be stopped
         # by the object on the way; a view from elsewhere must not count as the planned one.
         T = self.arm.camera_pose()
@@ -172,6 +176,7 @@ class ScanJob:
         res = ScanResult(scene=scene_name, planner=self.planner.name)
         try:
             _, ik_s, motion_s = self.move_to_initial(initial_candidates)
+            res.motion_contacts += len(self.last_contacts)
             res.motion_planning_s += ik_s
             res.motion_s += motion_s
             initial_pose = self.arm.camera_pose()
@@ -224,6 +229,7 @@ class ScanJob:
             res.planning_s += rec.planning_s
             res.motion_planning_s += rec.ik_s
             res.motion_s += rec.motion_s
+            res.motion_contacts += len(rec.contacts)
             if self.progress:
                 self.progress(rec)
             if plan.stop:
@@ -244,6 +250,7 @@ class ScanJob:
                 rank, ik_s, motion_s, err = self._move(plan.poses[:n])
                 rec.chosen_rank, rec.ik_s, rec.motion_s, rec.tracking_error_rad = rank, rec.ik_s + ik_s, motion_s, err
                 rec.reach_error_m, rec.reach_error_deg = self.last_reach_error_m, self.last_reach_error_deg
+                rec.contacts = self.last_contacts
                 if rec.reach_error_m > REACH_TOL_M or rec.reach_error_deg > REACH_TOL_DEG:
                     plan.tried = rank + 1
                     self.planner.reject(plan)  # the view will not be where it was planned: give the target up

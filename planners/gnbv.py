@@ -13,6 +13,7 @@ from planners import nbv
 from planners.base import ScanState, ViewPlan
 from planners.config import PlannersConfig
 from planners.grid import frontier_clusters
+from planners.growth import GrowthWatch
 from planners.views import look_at_rotations, poses_from, sphere_lattice
 
 
@@ -26,6 +27,8 @@ class GuidedNBV:
         self._target_steps: list[int] = []  # the step each was planned at
         self._given_up: list[np.ndarray] = []  # targets that proved unreachable or without gain
         self._first_gain: float | None = None  # the scale of a useful view, for the stop rule
+        self._growth = GrowthWatch(cfg.min_view_growth_voxels)
+        self._fruitless: list[np.ndarray] = []  # targets whose view found no drawing
 
     def reject(self, plan: ViewPlan) -> None:
         if plan.target is not None:
@@ -46,8 +49,11 @@ class GuidedNBV:
         usable = np.ones(n, dtype=bool)
         near = 3.0 * grid.voxel
         if n and self._given_up:
-            d, idx = cKDTree(centers).query(np.asarray(self._given_up), k=1)
+            G = np.asarray(self._given_up)
+            d, idx = cKDTree(centers).query(G, k=1)
             usable[lab[idx[d < near]]] = False
+            # a centroid can lie off its cells (a curved cluster): near a given-up centroid counts too
+            usable &= np.linalg.norm(cents[:, None, :] - G[None, :, :], axis=2).min(axis=1) >= 2 * near
         if n and self._targets:
             T = np.asarray(self._targets)
             visits = (np.linalg.norm(cents[:, None, :] - T[None, :, :], axis=2) < 2 * near).sum(axis=1)
@@ -98,6 +104,12 @@ class GuidedNBV:
     def next_view(self, state: ScanState) -> ViewPlan:
         cfg, grid = self.cfg, state.grid
         t0 = time.perf_counter()
+        # A view that found no drawing: its target gets one last try without a viewing cone (at an edge
+        # the drawing goes on round the corner), and is given up if that finds nothing either.
+        fruitless = self._growth.fruitless(state.step, grid)
+        if fruitless is not None:
+            again = any(np.linalg.norm(f - fruitless) < 6 * grid.voxel for f in self._fruitless)
+            (self._given_up if again else self._fruitless).append(fruitless)
         cents, ijk, lab, usable, frontier_xyz = self._clusters(state)
         timings = {"frontier_s": time.perf_counter() - t0}
         cam = state.camera_pose[:3, 3]
@@ -118,7 +130,10 @@ class GuidedNBV:
             # describes the side already seen while the drawing goes on round the corner.
             # A target already looked at without being resolved starts further down that list.
             tiers = (cfg.max_view_angle_deg, cfg.relaxed_view_angle_deg, None)
-            for cone in tiers[min(len(self._views_of(target, state)), len(tiers) - 1):]:
+            start = len(self._views_of(target, state))
+            if any(np.linalg.norm(f - target) < 6 * grid.voxel for f in self._fruitless):
+                start = len(tiers) - 1
+            for cone in tiers[min(start, len(tiers) - 1):]:
                 scored = self._score(state, target, None if cone is None else normal, cone or 90.0, weights, p_free,
                                      occupied)
                 if scored is not None:
@@ -130,6 +145,7 @@ class GuidedNBV:
             poses, q, gain = scored
             self._targets.append(target)
             self._target_steps.append(state.step)
+            self._growth.planned(state.step, target, grid)
             timings["plan_s"] = time.perf_counter() - t0
             return ViewPlan(poses, q, gain, False, "", target=target, frontier=frontier_xyz, timings=timings)
         timings["plan_s"] = time.perf_counter() - t0

@@ -107,6 +107,7 @@ class _Sim:
     def __init__(self) -> None:
         self.client = -1
         self.robot = -1
+        self.bodies: dict[int, str] = {}  # scene bodies the robot must not touch, by pybullet id
         self.lock = threading.RLock()
         self.closed = False
 
@@ -144,6 +145,11 @@ class TwinArm:
         )
         self._dt = 1.0 / config.sim_hz
         self._stop = threading.Event()
+        self._link_names = {-1: BASE_LINK, **{info[0]: info[12].decode() for info in by_name.values()}}
+        #: contacts (pybullet reports them from a few mm apart; distance < 0 is penetration) of the robot
+        #: with the scene during the last execute(): the twin's own check,
+        #: independent of the planner's collision model. One entry per (link, body), first sample.
+        self.last_motion_contacts: list[dict] = []
 
     # ------------------------------------------------------------------ Arm protocol
     def joint_positions(self) -> np.ndarray:
@@ -165,6 +171,7 @@ class TwinArm:
         states are set sample by sample, error 0. Raises TrajectoryError if stop() aborts it."""
         times, q, qd = self._validate(trajectory)
         self._stop.clear()
+        self.last_motion_contacts = []
         if self._config.execution == "teleport":
             return self._teleport(q)
         return self._step(times, q, qd)
@@ -217,6 +224,18 @@ class TwinArm:
         p.setJointMotorControlArray(robot, self._fingers, p.POSITION_CONTROL, targetPositions=[FINGER_OPENING] * 2,
                                     forces=[20.0, 20.0], physicsClientId=c)
 
+    def _note_contacts(self, sample: int) -> None:
+        """Record robot-scene contacts of the current simulation state (caller holds the lock)."""
+        c, robot = self._sim.client, self._sim.robot
+        seen = {(e["link"], e["body"]) for e in self.last_motion_contacts}
+        for body, name in self._sim.bodies.items():
+            for cp in p.getContactPoints(bodyA=robot, bodyB=body, physicsClientId=c):
+                link = self._link_names.get(cp[3], str(cp[3]))
+                if (link, name) not in seen and not (name == "floor" and link == BASE_LINK):
+                    seen.add((link, name))
+                    self.last_motion_contacts.append({"link": link, "body": name, "sample": sample,
+                                                      "distance_m": round(float(cp[8]), 5)})
+
     def _hold(self, q: np.ndarray) -> None:
         self._command(np.asarray(q, dtype=np.float64), np.zeros(7))
 
@@ -255,12 +274,14 @@ class TwinArm:
         return times, q, qd
 
     def _teleport(self, q: np.ndarray) -> float:
-        for sample in q:
+        for k, sample in enumerate(q):
             if self._stop.is_set():
                 raise TrajectoryError("execution stopped")
             with self._sim.lock:
                 self._sim.check()
                 self._set_state(sample)
+                p.performCollisionDetection(physicsClientId=self._sim.client)
+                self._note_contacts(k)
         with self._sim.lock:
             self._hold(q[-1])
         return 0.0
@@ -290,6 +311,7 @@ class TwinArm:
                 self._sim.check()
                 self._command(q_des[k], v_des[k])
                 p.stepSimulation(physicsClientId=c)
+                self._note_contacts(k)
                 now = np.array([s[0] for s in p.getJointStates(robot, self._joints, physicsClientId=c)])
             err = max(err, float(np.max(np.abs(now - q_des[k]))))
         # settle on the last sample
@@ -300,6 +322,7 @@ class TwinArm:
                     self._hold(self.joint_positions())
                     raise TrajectoryError("execution stopped while settling")
                 p.stepSimulation(physicsClientId=c)
+                self._note_contacts(n)
                 now = np.array([s[0] for s in p.getJointStates(robot, self._joints, physicsClientId=c)])
                 if np.max(np.abs(now - q[-1])) < SETTLE_TOLERANCE:
                     break
@@ -432,6 +455,8 @@ class Twin:
         self.paint_id = self._add_static(self.scene.paint_mesh, self.scene.paint_rgb, "paint")
         self.floor_id: int = p.loadURDF(PLANE_URDF, physicsClientId=c)
         sim.robot = p.loadURDF(PANDA_URDF, basePosition=[0, 0, 0], useFixedBase=True, physicsClientId=c)
+        sim.bodies = {i: n for i, n in ((self.object_id, "object"), (self.paint_id, "paint"), (self.floor_id, "floor"))
+                      if i is not None}
         self.robot_id: int = sim.robot
         self.arm = TwinArm(sim, self.config)
         self.camera = TwinCamera(sim, self.arm, self.config)

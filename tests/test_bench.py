@@ -227,7 +227,7 @@ def test_quick_bench_end_to_end(tmp_path):
     assert {"cpus", "python", "platform"} <= set(doc["machine"])
     keys = {"scene", "category", "planner", "seed", "views", "viewpoints", "planning_s", "step_s", "capture_s",
             "motion_s", "motion_planning_s", "displacement_m", "coverage", "terminated_by", "peak_memory_mb",
-            "wall_s", "error", "run_dir"}
+            "wall_s", "error", "run_dir", "coverage_by_view", "planning_s_by_view"}
     got = set()
     for r in doc["runs"]:
         assert keys <= set(r), keys - set(r)
@@ -237,6 +237,8 @@ def test_quick_bench_end_to_end(tmp_path):
         assert r["views"] >= 1 and r["viewpoints"] == r["views"] - 1
         assert r["planning_s"] >= 0 and r["displacement_m"] >= 0 and r["peak_memory_mb"] > 0
         assert r["category"] in (1, 3)
+        assert len(r["coverage_by_view"]) == len(r["planning_s_by_view"]) == r["views"]
+        assert r["coverage_by_view"][-1] == c["percent"] and sorted(r["planning_s_by_view"]) == r["planning_s_by_view"]
         assert (out / r["run_dir"] / "result.json").is_file() and (out / r["run_dir"] / "coverage.png").is_file()
         got.add((r["scene"], r["planner"], r["seed"]))
     assert got == {(s, p, 0) for s in ("smooth_cylinder", "round_tank") for p in ("gnbv", "enpv")}
@@ -249,6 +251,28 @@ def test_quick_bench_end_to_end(tmp_path):
         assert row in md, row
     for name in ("coverage.png", "step_time.png", "table3_smooth_cylinder.png", "table3_round_tank.png"):
         assert (out / name).stat().st_size > 1000, name
+
+
+def test_equal_coverage_compares_views_and_time_to_the_same_level():
+    def run(planner, seed, cov, cum):
+        r = _run("smooth_cylinder", 1, planner, seed, views=len(cov), hit=round(cov[-1]), total=100)
+        r["coverage_by_view"], r["planning_s_by_view"] = cov, cum
+        return r
+    # G-NBV ends at 99 %, global at 90 %: the level is 90 %; G-NBV passes it at viewpoint 2 (1.5 s of
+    # planning before that view), global at viewpoint 6 (12 s); one global seed never gets there
+    runs = [run("gnbv", s, [40, 80, 95, 99], [0.5, 1.5, 2.0, 2.5]) for s in range(3)]
+    runs += [run("global", s, [30, 50, 60, 70, 80, 85, 90, 90], [2, 4, 6, 8, 10, 12, 14, 15]) for s in range(2)]
+    runs.append(run("global", 2, [30, 89], [2, 4]))
+    doc = _doc(runs, scenes=("smooth_cylinder",), planners=("gnbv", "global"))
+    (row,) = bench_report.equal_coverage_rows(doc)
+    assert row["level"] == 90
+    assert row["gnbv"] == {"reached": 3, "runs": 3, "viewpoints": 2, "planning_s": 1.5}
+    assert row["global"]["reached"] == 2 and row["global"]["viewpoints"] == 6 and row["global"]["planning_s"] == 12
+    assert row["viewpoints_ratio"] == 3 and row["planning_ratio"] == 8
+    md = bench_report.render_markdown(doc)
+    assert "| smooth_cylinder (cat. 1) | 90.0 | 2 (3/3) | 6 (2/3) | 3.00 | 1.50 | 12.00 | 8.00 |" in md
+    assert bench_report.to_reach({"coverage_by_view": [50, 60]}, 90) == (None, None)
+    assert bench_report.to_reach({"coverage_by_view": [95], "planning_s_by_view": [1.0]}, 90) == (0, 0.0)
 
 
 def test_progress_eta_per_planner():

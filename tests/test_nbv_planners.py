@@ -74,3 +74,18 @@ def test_no_drawing_means_no_frontier_and_a_clean_stop():
     for name in ("gnbv", "cnbv"):
         plan = make_planner(name, cfg).next_view(state)
         assert plan.stop and plan.reason == "frontier"
+
+
+def test_growth_watch_flags_a_view_that_found_no_drawing():
+    from planners.growth import GrowthWatch
+    grid = OccupancyGrid(PlannersConfig().grid)
+    watch = GrowthWatch(3)
+    target = np.array([0.5, 0.0, 0.2])
+    watch.planned(0, target, grid)
+    assert watch.fruitless(0, grid) is None  # a replan in the same step: no view taken yet
+    grid.drawing[10, 10, 10:12] = True  # the view found 2 drawing voxels: fewer than 3
+    assert np.allclose(watch.fruitless(1, grid), target)
+    assert watch.fruitless(2, grid) is None  # reported once
+    watch.planned(2, target, grid)
+    grid.drawing[10, 11, 10:15] = True
+    assert watch.fruitless(3, grid) is None

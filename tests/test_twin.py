@@ -498,3 +498,24 @@ def test_sim_and_drivers_never_import_planners_or_cellctl():
                     names = [node.module]
                 for name in names:
                     assert name.split(".")[0] not in ("planners", "cellctl"), f"{path} imports {name}"
+
+
+@pytest.mark.parametrize("execution", ["step", "teleport"])
+def test_contacts_with_the_scene_are_recorded_per_motion(execution):
+    """The twin's own contact query, independent of the planner's collision model: a swing through a
+    block in front of the robot is reported with the link that hit it; a free motion reports nothing."""
+    scene = make_scene(box([0.2, 0.6, 0.4], [0.55, 0.0, 0.2]))
+    with Twin(scene, TwinConfig(execution=execution)) as twin:
+        arm = twin.arm
+        q0 = arm.joint_positions()
+        free = q0.copy()
+        free[0] += 0.3
+        arm.execute(smooth_trajectory(q0, free, 1.0))
+        assert arm.last_motion_contacts == []
+        into = free.copy()
+        into[0], into[1], into[3] = 0.0, 1.2, -1.0  # reach forward and down, through the block
+        arm.execute(smooth_trajectory(free, into, 2.0))
+        hits = arm.last_motion_contacts
+        assert hits and {h["body"] for h in hits} <= {"object", "paint", "floor"}
+        assert any(h["body"] == "object" and h["link"].startswith("panda_") for h in hits), hits
+        assert all(h["distance_m"] < 0.05 for h in hits)

@@ -18,7 +18,7 @@ Collisions are not considered here; callers check the returned configuration sep
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -192,6 +192,7 @@ def solve_camera_ik(
     tol_pos: float = 1e-4,
     tol_ang: float = 1e-3,
     max_iter: int = 200,
+    accept: Callable[[np.ndarray], bool] | None = None,
 ) -> IKResult:
     """Joint angles that put the camera at ``T_target_cam`` (T_base_cam wanted).
 
@@ -206,6 +207,8 @@ def solve_camera_ik(
         tol_pos: m, tol_ang: rad, convergence tolerances (angle of the optical axis when
             free_roll, of the full rotation otherwise).
         max_iter: iterations per seed (a seed also stops early when it stalls).
+        accept: optional test of a converged configuration (e.g. collision-free); a solution it
+            rejects does not count and the next seed is tried.
 
     Returns:
         IKResult of the first seed that converges (seed 0 = q_seed, so the solution stays near
@@ -246,16 +249,24 @@ def solve_camera_ik(
         starts[1:] = rng.uniform(lo, hi, size=(seeds - 1, kin.dof))
 
     best_pos, best_ang, best_cost = math.inf, math.inf, math.inf
+    refused = 0
     for k in range(seeds):
         ok, q, pe, ae, its = _solve_from(
             kin, starts[k].copy(), p_t, R_t, free_roll, lo, hi, tol_pos, tol_ang, max_iter
         )
+        if ok and accept is not None and not accept(q):
+            refused += 1
+            continue
         if ok:
             return IKResult(q=q, position_error_m=pe, angle_error_rad=ae, iterations=its, seed_index=k)
         cost = pe * pe + (ROT_WEIGHT * ae) ** 2
         if cost < best_cost:
             best_pos, best_ang, best_cost = pe, ae, cost
     task = "optical axis" if free_roll else "full pose"
+    if refused:
+        raise Unreachable(f"{refused} IK solution(s) for {what} ({task}, {seeds} seeds), all refused "
+                          "(in collision)", position=p_t, axis=z_t, best_position_error_m=0.0,
+                          best_angle_error_rad=0.0)
     raise Unreachable(
         f"no IK solution within joint limits (margin {margin:g} rad) for {what} ({task}, {seeds} seeds): "
         f"best residual {best_pos:.4f} m / {math.degrees(best_ang):.2f} deg",
