@@ -16,7 +16,8 @@ def _scan(args: argparse.Namespace) -> int:
     cfg, cfg_path = load_cell_config(args.config)
     result, run_dir = run_scan_in_twin(cfg, cfg_path, args.scene, args.planner, seed=args.seed,
                                        noise=not args.no_noise, out=args.out, max_steps=args.max_steps,
-                                       progress=not args.quiet)
+                                       progress=not args.quiet, cut=not args.no_cut,
+                                       dry_run_cut=args.dry_run_cut)
     _print_summary(result, run_dir)
     return 0 if result.error is None else 1
 
@@ -31,7 +32,7 @@ def _print_summary(r, run_dir: Path) -> None:
     rows = [
         ("scene", r.scene), ("planner", r.planner),
         ("views", f"{r.steps} captured (initial included; the paper's viewpoints: {max(r.steps - 1, 0)})"),
-        ("planning time", f"{r.planning_s:.2f} s total, {r.step_s:.3f} s/step"),
+        ("planning time", f"{r.planning_s:.2f} s total, {r.step_s:.3f} s per viewpoint (eq. 11)"),
         ("capture time", f"{r.capture_s:.2f} s"),
         ("motion planning", f"{r.motion_planning_s:.2f} s"),
         ("motion time", f"{r.motion_s:.2f} s"),
@@ -39,6 +40,17 @@ def _print_summary(r, run_dir: Path) -> None:
         ("coverage", f"{r.coverage_hit}/{r.coverage_total} voxels = {r.coverage_percent:.1f} %"),
         ("terminated by", r.terminated_by),
     ]
+    if r.cut:
+        c = r.cut
+        rows.append(("cut path", f"{c['feasible_branches']}/{c['branches']} branches feasible, "
+                                 f"{c['feasible_poses']}/{c['poses']} poses, {c['length_m']:.3f} m"
+                                 + (f"; infeasible: {c['infeasible']}" if c["infeasible"] else "")
+                                 + (f"; {c['error']}" if c["error"] else "")))
+        if c.get("dry_run"):
+            d = c["dry_run"]
+            rows.append(("dry-run cut", f"{d['motions']} motions, tip error max {d['tip_error_max_mm']} mm "
+                                        f"(median {d['tip_error_median_mm']}), off the path max "
+                                        f"{d['path_error_max_mm']} mm, {len(d['contacts'])} contacts"))
     if r.error:
         rows.append(("error", r.error))
     rows.append(("run folder", str(run_dir)))
@@ -60,6 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-noise", action="store_true", help="turn the D435 depth noise off")
     s.add_argument("--max-steps", type=int, default=None, help="override the planner's step limit")
     s.add_argument("--quiet", action="store_true", help="no per-step progress lines")
+    s.add_argument("--no-cut", action="store_true", help="stop after the scan: no cutting path")
+    s.add_argument("--dry-run-cut", action="store_true",
+                   help="run the cutting path in the twin (torch off) and report the tip's tracking error")
     s.set_defaults(func=_scan)
     b = sub.add_parser("bench", help="scan every (scene, planner, seed) in the twin and report beside the paper's "
                                      "Table II", description="Exit status: 0 all runs ok, 1 some run failed "

@@ -9,6 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from configs import CONFIG_DIR
 from planners.config import load_yaml_model
+from planners.motion.collision import CollisionConfig
 from sim.config import TwinConfig
 
 
@@ -18,6 +19,13 @@ class MotionConfig(BaseModel):
     speed_factor: float = Field(0.5, gt=0, le=1, description="scales the Panda's velocity/acceleration/jerk limits")
     ik_margin_rad: float = Field(0.05, ge=0, le=0.5)
     ik_seeds: int = Field(6, ge=1, le=64)
+    check_collisions: bool = Field(True, description="plan moves clear of floor, robot and the scanned scene (FCL)")
+    collision: CollisionConfig = Field(default_factory=CollisionConfig)
+    self_filter_pad_m: float = Field(0.02, ge=0, le=0.2, description="drop returns this close to the arm's "
+                                     "own collision hulls (0: keep them)")
+    retract_m: float = Field(0.10, ge=0, le=0.5, description="back-off along the optical axis for via waypoints")
+    park_q: tuple[float, float, float, float, float, float, float] | None = Field(
+        None, description="joints of a clear pose above the cell, the last via (default: the twin's home)")
 
 
 class CellConfig(BaseModel):

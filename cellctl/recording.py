@@ -71,6 +71,26 @@ class ScanRecorder:
         if target is not None:
             rec.log("world/target", rr.Points3D([target], colors=[255, 255, 0], radii=0.012))
 
+    def log_cut(self, step: int, path) -> None:
+        """The cutting path: each branch as a line (green where every pose is feasible, red where one
+        is not), the torch axis at every 5th pose, and the reasons as labels of the bad poses."""
+        rec = self.rec
+        rec.set_time("step", sequence=step)
+        for i, b in enumerate(path.branches):
+            if len(b) == 0:
+                continue
+            ok = np.array([f == "ok" for f in b.feasibility])
+            rec.log(f"world/cut/branch{i}", rr.LineStrips3D([b.points], colors=[40, 200, 60] if ok.all() else [230, 60, 40],
+                                                             radii=0.002, labels=[f"branch {i}: {b.length_m:.3f} m"]))
+            k = np.arange(0, len(b), 5)
+            rec.log(f"world/cut/branch{i}/torch", rr.Arrows3D(origins=b.poses[k, :3, 3] - 0.03 * b.poses[k, :3, 2],
+                                                               vectors=0.03 * b.poses[k, :3, 2],
+                                                               colors=np.where(ok[k, None], [40, 200, 60], [230, 60, 40])))
+            if (~ok).any():
+                bad = np.flatnonzero(~ok)
+                rec.log(f"world/cut/branch{i}/infeasible", rr.Points3D(b.points[bad], colors=[230, 60, 40], radii=0.003,
+                                                                        labels=[b.feasibility[j] for j in bad]))
+
     def close(self) -> None:
         self.rec.flush()
         self.rec.disconnect()

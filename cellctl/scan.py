@@ -21,9 +21,10 @@ from planners.clouds import Cloud
 from planners.config import PlannersConfig
 from planners.grid import OccupancyGrid
 from planners.metrics import coverage, displacement
-from planners.motion.ik import Unreachable, solve_camera_ik_many
+from planners.motion.collision import CollisionChecker, RobotCollisionModel
+from planners.motion.ik import Unreachable
 from planners.motion.kinematics import Kinematics
-from planners.motion.trajectory import plan_joint_motion
+from planners.motion.view_motion import ViewMotionPlanner
 
 # name -> "module:class"; imported on demand so one planner's dependencies never load another's
 PLANNERS = {
@@ -64,7 +65,7 @@ class StepRecord:
     planning_s: float  # eq. 10's share of this step: cloud processing + grid update + view planning
     capture_s: float
     process_s: float = 0.0  # of planning_s: clouds, colour filter, grid update
-    ik_s: float = 0.0
+    motion_planning_s: float = 0.0  # IK, collision checks, trajectory (not view planning)
     motion_s: float = 0.0
     tracking_error_rad: float = 0.0
     chosen_rank: int | None = None
@@ -73,6 +74,7 @@ class StepRecord:
     reach_error_m: float = 0.0  # camera position reached vs planned
     reach_error_deg: float = 0.0  # optical axis reached vs planned
     contacts: list[dict] = field(default_factory=list)  # robot-scene contacts the twin saw on this move
+    via: str = ""  # how the move went: direct, retract, approach, retract+approach, park
 
 
 @dataclass
@@ -81,7 +83,7 @@ class ScanResult:
     planner: str
     steps: int = 0
     planning_s: float = 0.0
-    step_s: float = 0.0
+    step_s: float = 0.0  # eq. 11: planning time per viewpoint (the initial view is not one)
     capture_s: float = 0.0
     motion_planning_s: float = 0.0
     motion_s: float = 0.0
@@ -91,6 +93,7 @@ class ScanResult:
     coverage_percent: float = 0.0
     terminated_by: str = ""
     motion_contacts: int = 0  # robot-scene contacts the twin reported over all moves (twin only)
+    cut: dict | None = None  # the cutting path's summary (cellctl.cut.CutSummary), when one was planned
     error: str | None = None
     viewpoints: list[list[float]] = field(default_factory=list)
     records: list[StepRecord] = field(default_factory=list)
@@ -101,11 +104,21 @@ class ScanResult:
 
 class ScanJob:
     def __init__(self, arm: Arm, camera: RGBDCamera, planner_name: str, pcfg: PlannersConfig,
-                 mcfg: MotionConfig, recorder=None, progress: Callable[[StepRecord], None] | None = None):
+                 mcfg: MotionConfig, recorder=None, progress: Callable[[StepRecord], None] | None = None,
+                 park_q: np.ndarray | None = None):
         self.arm, self.camera, self.pcfg, self.mcfg = arm, camera, pcfg, mcfg
         self.planner = make_planner(planner_name, pcfg)
         m = arm.model
         self.kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
+        self.robot = RobotCollisionModel.from_arm_model(m, mcfg.collision)
+        self.checker = CollisionChecker(self.robot, mcfg.collision) if mcfg.check_collisions else None
+        park = mcfg.park_q if mcfg.park_q is not None else park_q
+        self.motion = ViewMotionPlanner(self.kin, m.max_velocity, m.max_acceleration, m.max_jerk, self.checker,
+                                        speed_factor=mcfg.speed_factor, ik_margin_rad=mcfg.ik_margin_rad,
+                                        ik_seeds=mcfg.ik_seeds, retract_m=mcfg.retract_m,
+                                        park_q=None if park is None else np.asarray(park, dtype=np.float64))
+        self.last_via = ""
+        self._scene_stale = True  # the collision scene lags the grid until the next move
         self.recorder = recorder
         self.progress = progress
         raycast.warmup()  # compile before the clock starts, like any service would at boot
@@ -113,6 +126,7 @@ class ScanJob:
         self.surface = Cloud.empty()
         self.drawing = Cloud.empty()
         self.empty_frames = 0
+        self.self_filtered = 0  # points dropped because they lay on the arm
         self.last_reach_error_m = self.last_reach_error_deg = 0.0
         self.last_contacts: list[dict] = []
         self.first_color: np.ndarray | None = None  # the initial view, for the run folder's picture
@@ -122,38 +136,40 @@ class ScanJob:
 
     # --- motion ---------------------------------------------------------------------------------
     def _move(self, poses: np.ndarray) -> tuple[int, float, float, float]:
-        """Reach the first reachable of the ranked poses: (rank, ik_s, motion_s, tracking error)."""
+        """Reach the first of the ranked poses with a clear motion: (rank, motion planning s, motion s,
+        tracking error). The collision scene is the grid as scanned so far."""
         t0 = time.perf_counter()
-        q_now = self.arm.joint_positions()
-        idx, ik = solve_camera_ik_many(self.kin, poses, q_now, margin=self.mcfg.ik_margin_rad,
-                                       seeds=self.mcfg.ik_seeds)
-        m = self.arm.model
-        path = plan_joint_motion(q_now, ik.q, m.max_velocity, m.max_acceleration, m.max_jerk,
-                                 speed_factor=self.mcfg.speed_factor)
-        ik_s = time.perf_counter() - t0
+        if self.checker is not None and self._scene_stale:
+            self.checker.set_scene_from_grid(self.grid)
+            self._scene_stale = False
+        mv = self.motion.plan(self.arm.joint_positions(), poses)
+        self.last_via = mv.via
+        plan_s = time.perf_counter() - t0
+        path = mv.path
         err = self.arm.execute(JointTrajectory(path.times, path.positions, path.velocities))
         self.last_contacts = list(getattr(self.arm, "last_motion_contacts", []))  # the twin's own check
-        # Did the camera get there? Without collision checking yet (issue 4) the arm can be stopped
-        # by the object on the way; a view from elsewhere must not count as the planned one.
+        # Did the camera get there? A view from elsewhere (the arm stopped or deflected on the way)
+        # must not count as the planned one.
         T = self.arm.camera_pose()
-        self.last_reach_error_m = float(np.linalg.norm(T[:3, 3] - poses[idx][:3, 3]))
-        self.last_reach_error_deg = float(np.degrees(np.arccos(np.clip(T[:3, 2] @ poses[idx][:3, 2], -1.0, 1.0))))
-        return idx, ik_s, float(path.duration), float(err)
+        self.last_reach_error_m = float(np.linalg.norm(T[:3, 3] - poses[mv.index][:3, 3]))
+        self.last_reach_error_deg = float(np.degrees(np.arccos(np.clip(T[:3, 2] @ poses[mv.index][:3, 2], -1.0, 1.0))))
+        return mv.index, plan_s, float(path.duration), float(err)
 
     def move_to_initial(self, candidates: np.ndarray) -> tuple[int, float, float]:
         if len(candidates) == 0:
             raise ScanError("no initial view: the scene gives no pose that sees the drawing")
         try:
-            idx, ik_s, motion_s, _ = self._move(candidates)
+            idx, plan_s, motion_s, _ = self._move(candidates)
         except Unreachable as e:
             raise ScanError(f"no initial view is reachable: {e}") from None
-        return idx, ik_s, motion_s
+        return idx, plan_s, motion_s
 
     # --- perception -----------------------------------------------------------------------------
-    def _process(self, frame, T_base_cam: np.ndarray) -> Cloud:
-        """ProcessClouds of §IV-B plus the grid update."""
+    def _process(self, frame, T_base_cam: np.ndarray, q: np.ndarray) -> Cloud:
+        """ProcessClouds of §IV-B plus the grid update. Returns on the arm itself (at joints q) are
+        dropped first: the arm must not become an obstacle to itself."""
         g = self.pcfg.grid
-        cloud = clouds.frame_to_base_cloud(frame.color, frame.depth, self.K, T_base_cam)
+        cloud = self._off_robot(clouds.frame_to_base_cloud(frame.color, frame.depth, self.K, T_base_cam), q)
         if len(cloud) == 0:
             # A view of nothing (everything nearer than the sensor's minimum range, or empty space)
             # teaches nothing but is not a fault; several in a row are.
@@ -166,18 +182,27 @@ class ScanJob:
         c = self.pcfg.color
         paint = clouds.color_mask(cloud.rgb, c.hue_center_deg, c.hue_halfwidth_deg, c.s_min, c.v_min)
         self.drawing = clouds.concatenate(self.drawing, cloud.select(paint), g.surface_voxel_m)
-        rays = clouds.frame_to_base_cloud(frame.color, frame.depth, self.K, T_base_cam, stride=g.integrate_stride_px)
+        rays = self._off_robot(clouds.frame_to_base_cloud(frame.color, frame.depth, self.K, T_base_cam,
+                                                          stride=g.integrate_stride_px), q)
         self.grid.integrate(T_base_cam[:3, 3], rays.xyz)
         self.grid.set_drawing(self.drawing.xyz)
+        self._scene_stale = True
         return cloud
+
+    def _off_robot(self, cloud: Cloud, q: np.ndarray) -> Cloud:
+        if self.mcfg.self_filter_pad_m <= 0 or len(cloud) == 0:
+            return cloud
+        on = self.robot.on_robot(cloud.xyz, q, self.mcfg.self_filter_pad_m)
+        self.self_filtered += int(on.sum())
+        return cloud.select(~on) if on.any() else cloud
 
     # --- the loop -------------------------------------------------------------------------------
     def run(self, scene_name: str, initial_candidates: np.ndarray, gt_points: np.ndarray) -> ScanResult:
         res = ScanResult(scene=scene_name, planner=self.planner.name)
         try:
-            _, ik_s, motion_s = self.move_to_initial(initial_candidates)
+            _, plan_s, motion_s = self.move_to_initial(initial_candidates)
             res.motion_contacts += len(self.last_contacts)
-            res.motion_planning_s += ik_s
+            res.motion_planning_s += plan_s
             res.motion_s += motion_s
             initial_pose = self.arm.camera_pose()
             self._explore(res, initial_pose, gt_points)
@@ -191,7 +216,7 @@ class ScanJob:
             res.coverage_hit, res.coverage_total, res.coverage_percent = cov.hit, cov.total, round(cov.percent, 2)
             res.steps = len(res.records)
             res.displacement_m = displacement(np.array(res.viewpoints)) if res.viewpoints else 0.0
-            res.step_s = res.planning_s / res.steps if res.steps else 0.0
+            res.step_s = res.planning_s / max(res.steps - 1, 1) if res.steps else 0.0  # eq. 11: per viewpoint
         return res
 
     def _explore(self, res: ScanResult, initial_pose: np.ndarray, gt_points: np.ndarray | None) -> None:
@@ -200,10 +225,11 @@ class ScanJob:
             t0 = time.perf_counter()
             frame = self.camera.capture()
             T = self.arm.camera_pose()
+            q = self.arm.joint_positions()
             if self.first_color is None:
                 self.first_color = frame.color
             t1 = time.perf_counter()
-            cloud = self._process(frame, T)
+            cloud = self._process(frame, T, q)
             t_proc = time.perf_counter() - t1
             if len(cloud) == 0 and last_plan is not None:
                 self.planner.reject(last_plan)  # that view saw nothing: do not aim there again
@@ -227,7 +253,7 @@ class ScanJob:
                 plan = self._go(plan, state, rec)
             last_plan = plan
             res.planning_s += rec.planning_s
-            res.motion_planning_s += rec.ik_s
+            res.motion_planning_s += rec.motion_planning_s
             res.motion_s += rec.motion_s
             res.motion_contacts += len(rec.contacts)
             if self.progress:
@@ -244,18 +270,22 @@ class ScanJob:
         for _ in range(4):
             if plan.stop:
                 return plan
+            t_move = time.perf_counter()
             try:
                 if len(plan.poses) == 0:
                     raise Unreachable("planner offered no candidate for this target")
-                rank, ik_s, motion_s, err = self._move(plan.poses[:n])
-                rec.chosen_rank, rec.ik_s, rec.motion_s, rec.tracking_error_rad = rank, rec.ik_s + ik_s, motion_s, err
+                rank, plan_s, motion_s, err = self._move(plan.poses[:n])
+                rec.chosen_rank, rec.motion_s, rec.tracking_error_rad = rank, motion_s, err
+                rec.motion_planning_s += plan_s
                 rec.reach_error_m, rec.reach_error_deg = self.last_reach_error_m, self.last_reach_error_deg
                 rec.contacts = self.last_contacts
+                rec.via = self.last_via
                 if rec.reach_error_m > REACH_TOL_M or rec.reach_error_deg > REACH_TOL_DEG:
                     plan.tried = rank + 1
                     self.planner.reject(plan)  # the view will not be where it was planned: give the target up
                 return plan
             except Unreachable:
+                rec.motion_planning_s += time.perf_counter() - t_move
                 plan.tried = min(n, len(plan.poses))
                 self.planner.reject(plan)
                 rec.replans += 1

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import sys
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from cellctl.artifacts import new_run_dir, save_png, write_json, write_ply
 from cellctl.config import CellConfig
+from cellctl.cut import dry_run_cut, plan_cut, write_trajectory
 from cellctl.plots import coverage_figure
 from cellctl.recording import ScanRecorder
 from cellctl.scan import ScanJob, ScanResult, StepRecord
@@ -17,9 +19,30 @@ from sim.scenes import load_scene
 from sim.twin import Twin
 
 
+def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, twin: Twin, run_dir: Path, recorder: ScanRecorder,
+               result: ScanResult, dry_run: bool, progress: bool) -> None:
+    """planning-cut: the drawing becomes cut_path.json/.csv and cut_trajectory.npz; optionally the
+    twin runs it (torch off) and the tip's tracking is measured."""
+    viewpoint = np.array(result.viewpoints[0]) if result.viewpoints else None
+    path, summary, kin = plan_cut(twin.arm, cfg.motion.collision, pcfg.cutpath, job.grid, job.drawing, job.surface,
+                                  viewpoint)
+    if path is not None:
+        path.write(run_dir)
+        write_trajectory(path, run_dir / "cut_trajectory.npz")
+        recorder.log_cut(len(result.records), path)
+        if dry_run:
+            summary.dry_run = dry_run_cut(twin.arm, kin, path)
+    result.cut = asdict(summary)
+    if progress:
+        print(f"cut path: {summary.feasible_branches}/{summary.branches} branches feasible, "
+              f"{summary.feasible_poses}/{summary.poses} poses, {summary.length_m:.3f} m, "
+              f"planned in {summary.planning_s:.2f} s" + (f" ({summary.error})" if summary.error else ""),
+              file=sys.stderr, flush=True)
+
+
 def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, seed: int | None = None,
                      noise: bool = True, out: str | None = None, max_steps: int | None = None,
-                     progress: bool = True) -> tuple[ScanResult, Path]:
+                     progress: bool = True, cut: bool = True, dry_run_cut: bool = False) -> tuple[ScanResult, Path]:
     pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
     if max_steps is not None:
         pcfg = pcfg.model_copy(update={"max_steps": max_steps})
@@ -40,9 +63,11 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
     try:  # whatever happens, the run folder ends with a result.json and a closed recording
         recorder.log_scene(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points)
         with Twin(scene, twin_cfg) as twin:
-            job = ScanJob(twin.arm, twin.camera, planner, pcfg, cfg.motion, recorder, report)
+            job = ScanJob(twin.arm, twin.camera, planner, pcfg, cfg.motion, recorder, report, park_q=twin_cfg.home_q)
             twin.arm.reset(twin_cfg.home_q)
             result = job.run(scene.name, scene.initial_view_candidates, scene.gt_points)
+            if cut and result.error is None and len(job.drawing):
+                _cut_phase(job, pcfg, cfg, twin, run_dir, recorder, result, dry_run_cut, progress)
         write_ply(run_dir / "drawing.ply", job.drawing)
         write_ply(run_dir / "surface.ply", job.surface)
         coverage_figure(run_dir / "coverage.png", scene.gt_points, job.drawing.xyz, np.array(result.viewpoints),

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+from scipy.spatial.transform import Rotation
 
 from configs.loading import load_yaml_model as _load_yaml_model
 
@@ -113,6 +116,75 @@ class ENVPConfig(_Strict):
     normal_radius_m: float = Field(0.04, gt=0.005, le=0.3, description="neighbourhood for the surface normal")
 
 
+class TorchConfig(_Strict):
+    """The gas torch on the flange. Its frame: origin at the nozzle tip, z along the flame; the
+    body is a cylinder of radius_m from the tip back length_m along -z (for collision checks)."""
+
+    xyz_m: tuple[float, float, float] = (0.0, 0.0, 0.20)  # along the flange z axis, past the fingers
+    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # fixed-axis roll x, pitch y, yaw z, as the hand-eye
+    radius_m: float = Field(0.015, gt=0, le=0.2)
+    length_m: float = Field(0.18, gt=0, le=1.0)
+
+    @model_validator(mode="after")
+    def _check(self) -> "TorchConfig":
+        if any(abs(v) > 360.0 for v in self.rpy_deg):
+            raise ValueError(f"torch rpy_deg {self.rpy_deg} outside [-360, 360]")
+        if float(np.linalg.norm(self.xyz_m)) > 1.0:
+            raise ValueError(f"torch xyz_m {self.xyz_m} is more than 1 m from the flange")
+        return self
+
+    def T_flange_torch(self) -> np.ndarray:
+        """4x4 torch-tip frame in the flange frame: pass it as Kinematics' T_flange_cam."""
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("xyz", self.rpy_deg, degrees=True).as_matrix()
+        T[:3, 3] = self.xyz_m
+        return T
+
+    def T_flange_mount(self) -> np.ndarray:
+        """4x4 frame at the torch's back end, same axes as the tip frame: the cylinder spans
+        z in [0, length_m] of it (as planners.motion.collision.TorchShape wants its frame)."""
+        T = self.T_flange_torch()
+        T[:3, 3] -= self.length_m * T[:3, 2]
+        return T
+
+
+class CutPathConfig(_Strict):
+    """From the drawing cloud to torch poses and the joint motion that follows them."""
+
+    # drawing -> branches
+    voxel_m: float = Field(0.005, ge=0.001, le=0.05, description="skeleton voxel; the 2 mm surface cloud allows 5 mm")
+    closing_iterations: int = Field(1, ge=0, le=5, description="close gaps of up to 2x this many voxels")
+    min_branch_m: float = Field(0.03, ge=0, le=1.0, description="spurs (and lone pieces) shorter than this are dropped")
+    smoothing_voxels: float = Field(0.5, ge=0, le=5, description="B-spline: RMS deviation allowed from the skeleton")
+    spacing_m: float = Field(0.005, ge=0.0005, le=0.1, description="arc length between torch poses")
+    normal_radius_m: float = Field(0.02, gt=0.002, le=0.2, description="neighbourhood of the surface normal (PCA)")
+    # torch poses
+    standoff_m: float = Field(0.010, ge=0, le=0.1, description="tip to surface along the normal")
+    travel_speed_mps: float = Field(0.005, gt=0, le=0.5, description="cutting speed along the drawing")
+    approach_m: float = Field(0.05, ge=0, le=0.5, description="approach/retract pose this far back along the torch axis")
+    torch: TorchConfig = TorchConfig()
+    # joint motion
+    free_roll: bool = Field(True, description="roll about the torch axis left to IK: a round nozzle is symmetric")
+    max_joint_jump_rad: float = Field(0.2, gt=0, le=math.pi, description="larger joint change between poses is infeasible")
+    ik_margin_rad: float = Field(0.05, ge=0, le=0.5, description="kept from every joint limit")
+    ik_seeds: int = Field(8, ge=1, le=64, description="IK starts for a branch's first pose and after a failure")
+    approach_speed_factor: float = Field(0.3, gt=0, le=1, description="of the arm's limits, for approach and retract")
+    dt_s: float = Field(0.01, gt=0, le=0.1, description="sample period of the joint trajectories")
+    reverse_branches: bool = Field(True, description="start each branch at the end nearer the torch")
+    # collision checks of the cut (the torch must come close to the metal: its nozzle is exempt)
+    cut_margin_m: float = Field(0.005, ge=0, le=0.1, description="clearance of arm and torch from the scan")
+    nozzle_exempt_m: float = Field(0.03, ge=0, le=0.5, description="this much of the torch, from the tip, is not checked")
+
+    @model_validator(mode="after")
+    def _sizes(self) -> "CutPathConfig":
+        if self.normal_radius_m < self.voxel_m:
+            raise ValueError(f"normal_radius_m ({self.normal_radius_m}) must be at least voxel_m ({self.voxel_m})")
+        if self.nozzle_exempt_m >= self.torch.length_m:
+            raise ValueError(f"nozzle_exempt_m ({self.nozzle_exempt_m}) must be shorter than the torch "
+                             f"({self.torch.length_m} m)")
+        return self
+
+
 class PlannersConfig(_Strict):
     grid: GridConfig = GridConfig()
     color: ColorFilter = ColorFilter()
@@ -120,6 +192,7 @@ class PlannersConfig(_Strict):
     enpv: ENVPConfig = ENVPConfig()
     max_steps: int = Field(16, ge=1, le=200, description="views per scan at most, initial one included")
     coverage_voxel_m: float = Field(0.01, gt=0.001, le=0.1)
+    cutpath: CutPathConfig = CutPathConfig()
 
 
 class ConfigError(ValueError):

@@ -95,6 +95,8 @@ class TwinConfig(BaseModel):
 
     camera: D435Config = Field(default_factory=D435Config)
     hand_eye: HandEyeConfig = Field(default_factory=HandEyeConfig)
-    home_q: Joint7 = Field(default_factory=lambda: [0.0, -0.7, 0.0, -2.4, 0.0, 2.2, 0.785])
+    # camera at (0.35, 0, 0.84) looking down and forward; the hand stays above z = 0.75, clear of every
+    # built-in scene (the tallest, t_piece, ends at 0.57)
+    home_q: Joint7 = Field(default_factory=lambda: [0.0, -0.7, 0.0, -1.7, 0.0, 1.5, 0.785])
     sim_hz: int = Field(240, ge=60, le=2000)
     execution: Literal["step", "teleport"] = "step"

@@ -150,6 +150,10 @@ class TwinArm:
         #: with the scene during the last execute(): the twin's own check,
         #: independent of the planner's collision model. One entry per (link, body), first sample.
         self.last_motion_contacts: list[dict] = []
+        #: joints commanded and reached at every simulation step of the last execute() (T, 7): the
+        #: tracking of a path (a cut) can be judged after the fact
+        self.last_motion_desired = np.zeros((0, 7))
+        self.last_motion_actual = np.zeros((0, 7))
 
     # ------------------------------------------------------------------ Arm protocol
     def joint_positions(self) -> np.ndarray:
@@ -173,6 +177,7 @@ class TwinArm:
         self._stop.clear()
         self.last_motion_contacts = []
         if self._config.execution == "teleport":
+            self.last_motion_desired = self.last_motion_actual = q.copy()
             return self._teleport(q)
         return self._step(times, q, qd)
 
@@ -234,7 +239,8 @@ class TwinArm:
                 if (link, name) not in seen and not (name == "floor" and link == BASE_LINK):
                     seen.add((link, name))
                     self.last_motion_contacts.append({"link": link, "body": name, "sample": sample,
-                                                      "distance_m": round(float(cp[8]), 5)})
+                                                      "distance_m": round(float(cp[8]), 5),
+                                                      "position": [round(float(x), 4) for x in cp[6]]})
 
     def _hold(self, q: np.ndarray) -> None:
         self._command(np.asarray(q, dtype=np.float64), np.zeros(7))
@@ -302,6 +308,8 @@ class TwinArm:
             v_des = (qd[seg] + a * (qd[seg + 1] - qd[seg])) if qd is not None else (q[seg + 1] - q[seg]) / h[:, None]
         c, robot = self._sim.client, self._sim.robot
         err = 0.0
+        self.last_motion_desired = q_des
+        self.last_motion_actual = actual = np.full_like(q_des, np.nan)
         for k in range(n):
             if self._stop.is_set():
                 with self._sim.lock:
@@ -313,6 +321,7 @@ class TwinArm:
                 p.stepSimulation(physicsClientId=c)
                 self._note_contacts(k)
                 now = np.array([s[0] for s in p.getJointStates(robot, self._joints, physicsClientId=c)])
+            actual[k] = now
             err = max(err, float(np.max(np.abs(now - q_des[k]))))
         # settle on the last sample
         with self._sim.lock:

@@ -97,6 +97,7 @@ class Kinematics:
         self.model = model
         self.data = model.createData()
         self._frame_ids = {"cam": self._cam_id, "flange": self._flange_id}
+        self._link_ids: dict[tuple[str, ...], list[int]] = {}
 
         lo = np.empty(self.dof)
         hi = np.empty(self.dof)
@@ -151,6 +152,26 @@ class Kinematics:
         q = self._vec(q)
         pin.framesForwardKinematics(self.model, self.data, self._to_pin(q))
         return self.data.oMf[fid].homogeneous.copy()
+
+    def link_poses(self, q: np.ndarray, links: Sequence[str]) -> np.ndarray:
+        """T_base_<link> (len(links), 4, 4) at q, in one FK pass: collision geometry hangs on every
+        link, not just the flange. Locked joints (the fingers) sit at their neutral value."""
+        q = self._vec(q)
+        key = tuple(links)
+        ids = self._link_ids.get(key)
+        if ids is None:
+            ids = self._link_ids[key] = [self.link_frame_id(n) for n in key]
+        pin.framesForwardKinematics(self.model, self.data, self._to_pin(q))
+        oMf = self.data.oMf
+        return np.stack([oMf[i].homogeneous for i in ids]) if ids else np.empty((0, 4, 4))
+
+    def link_frame_id(self, link: str) -> int:
+        """Pinocchio frame id of a URDF link (ValueError naming the links if unknown)."""
+        model = self.model
+        if not isinstance(link, str) or not model.existFrame(link, pin.FrameType.BODY):
+            links = [f.name for f in model.frames if f.type == pin.FrameType.BODY]
+            raise ValueError(f"link {link!r} not in URDF {self.urdf_path}; links: {links}")
+        return model.getFrameId(link, pin.FrameType.BODY)
 
     def jacobian_cam(self, q: np.ndarray) -> np.ndarray:
         """6x7 Jacobian of the camera frame: rows [v; w] of the camera origin, world-aligned axes."""

@@ -1,0 +1,129 @@
+"""The end of a scan job: the reconstructed drawing becomes a cutting path for the torch, checked
+against what was scanned, and (on request) run in the twin to see how well the tip follows it."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from drivers.interfaces import Arm, JointTrajectory
+from planners.clouds import Cloud
+from planners.config import CutPathConfig
+from planners.cutpath import CutPath, plan_cut_path, torch_kinematics
+from planners.grid import OccupancyGrid
+from planners.motion.collision import CollisionChecker, CollisionConfig, RobotCollisionModel, TorchShape
+from planners.motion.kinematics import Kinematics
+
+
+@dataclass
+class CutSummary:
+    branches: int = 0
+    feasible_branches: int = 0
+    poses: int = 0
+    feasible_poses: int = 0
+    length_m: float = 0.0
+    planning_s: float = 0.0
+    infeasible: dict[str, int] = field(default_factory=dict)  # pose count per reason
+    issues: list[str] = field(default_factory=list)
+    error: str | None = None
+    dry_run: dict | None = None  # filled by dry_run_cut
+
+
+def torch_checker(arm_model, ccfg: CollisionConfig, cut: CutPathConfig, grid: OccupancyGrid) -> CollisionChecker:
+    """Arm + camera + torch against the scan, with the cut's own (small) margin. The last
+    ``nozzle_exempt_m`` of the torch is left out: the nozzle works ``standoff_m`` off the metal."""
+    t = cut.torch
+    shape = TorchShape(t.radius_m, t.length_m - cut.nozzle_exempt_m, t.T_flange_mount())
+    cfg = ccfg.model_copy(update={"margin_m": cut.cut_margin_m})
+    checker = CollisionChecker(RobotCollisionModel.from_arm_model(arm_model, cfg, torch=shape), cfg)
+    checker.set_scene_from_grid(grid)
+    return checker
+
+
+def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: OccupancyGrid, drawing: Cloud,
+             surface: Cloud, viewpoint: np.ndarray) -> tuple[CutPath | None, CutSummary, Kinematics]:
+    """Cut path from the scan; a drawing that gives no path is reported, not raised."""
+    m = arm.model
+    t0 = time.perf_counter()
+    kin = torch_kinematics(m.urdf_path, cut, joint_names=m.joint_names, flange_link=m.flange_link,
+                           lower=m.lower, upper=m.upper)
+    summary = CutSummary()
+    try:
+        checker = torch_checker(m, ccfg, cut, grid)
+
+        def is_free(Q: np.ndarray) -> np.ndarray:  # per pose of a branch: a few hundred
+            return np.array([not checker.in_collision(q) for q in Q], dtype=bool)
+
+        path = plan_cut_path(drawing, surface, kin, arm.joint_positions(), cut, viewpoint=viewpoint,
+                             is_free=is_free, max_vel=m.max_velocity, max_acc=m.max_acceleration,
+                             max_jerk=m.max_jerk)
+    except ValueError as e:
+        summary.error = str(e)
+        summary.planning_s = time.perf_counter() - t0
+        return None, summary, kin
+    summary.planning_s = time.perf_counter() - t0
+    summary.branches = len(path.branches)
+    summary.feasible_branches = sum(b.feasible for b in path.branches)
+    summary.poses = sum(len(b) for b in path.branches)
+    reasons = [f for b in path.branches for f in b.feasibility]
+    summary.feasible_poses = sum(f == "ok" for f in reasons)
+    summary.infeasible = {r: reasons.count(r) for r in sorted(set(reasons)) if r != "ok"}
+    summary.length_m = round(float(path.length_m), 4)
+    summary.issues = [f"branch {i}: {msg}" for i, b in enumerate(path.branches) for msg in b.issues]
+    return path, summary, kin
+
+
+def write_trajectory(path: CutPath, file) -> None:
+    """The joint motion of every feasible branch (approach, cut, retract: times and positions)."""
+    arrays = {}
+    for i, b in enumerate(path.branches):
+        for phase in ("approach", "cut", "retract"):
+            jp = getattr(b, phase)
+            if b.feasible and jp is not None:
+                arrays[f"branch{i}_{phase}_t"] = jp.times
+                arrays[f"branch{i}_{phase}_q"] = jp.positions
+    np.savez_compressed(file, **arrays)
+
+
+def dry_run_cut(arm: Arm, kin: Kinematics, path: CutPath) -> dict:
+    """Run every feasible branch (approach, cut, retract) on the arm, torch off, and measure the
+    torch tip against the plan: at the same instant, and as distance from the planned path."""
+    planned_tip, errors_t, errors_path, contacts, moved = [], [], [], [], 0
+    for b in path.branches:
+        if not b.feasible:
+            continue
+        for phase in ("approach", "cut", "retract"):
+            jp = getattr(b, phase)
+            jq = jp.positions
+            q_now = arm.joint_positions()
+            if np.max(np.abs(jq[0] - q_now)) > 1e-3:  # the arm settled a hair away from the plan's start
+                jq = np.vstack([q_now, jq[1:]])
+            arm.execute(JointTrajectory(jp.times, jq, jp.velocities))
+            moved += 1
+            contacts += list(getattr(arm, "last_motion_contacts", []))
+            if phase != "cut":
+                continue
+            desired = getattr(arm, "last_motion_desired", None)
+            actual = getattr(arm, "last_motion_actual", None)
+            if desired is None or actual is None or len(actual) == 0:
+                continue
+            ok = np.all(np.isfinite(actual), axis=1)
+            tip_des = kin.fk_positions(desired[ok])
+            tip_act = kin.fk_positions(actual[ok])
+            errors_t.append(np.linalg.norm(tip_act - tip_des, axis=1))
+            dense = kin.fk_positions(jp.positions)
+            d, _ = cKDTree(dense).query(tip_act)
+            errors_path.append(d)
+            planned_tip.append(dense)
+    if not errors_t:
+        return {"motions": moved, "contacts": contacts, "tip_error_max_mm": None, "tip_error_median_mm": None,
+                "path_error_max_mm": None}
+    e_t, e_p = np.concatenate(errors_t), np.concatenate(errors_path)
+    return {"motions": moved, "contacts": contacts,
+            "tip_error_max_mm": round(1e3 * float(e_t.max()), 3),
+            "tip_error_median_mm": round(1e3 * float(np.median(e_t)), 3),
+            "path_error_max_mm": round(1e3 * float(e_p.max()), 3),
+            "path_error_median_mm": round(1e3 * float(np.median(e_p)), 3)}

@@ -1,0 +1,174 @@
+"""Branch polyline -> smooth, evenly spaced points on the surface -> torch poses. The skeleton
+is quantized to voxel centres; the torch must follow the paint on the metal, so the curve is
+smoothed, then pushed back onto the measured surface."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.interpolate import splev, splprep
+from scipy.spatial import cKDTree
+
+from planners.cutpath import _checks
+
+#: nearest surface points whose centroid a path point is snapped to (a local level, not a fit)
+SNAP_NEIGHBOURS = 8
+#: surface points in a normal's PCA at most (the nearest of those within the radius)
+NORMAL_NEIGHBOURS = 64
+_MIN_NORMAL_NEIGHBOURS = 6
+_END_WEIGHT = 10.0  # keeps the spline's ends on the junction/end nodes that branches share
+
+
+def arc_length(p: np.ndarray) -> np.ndarray:
+    """Cumulative length along a polyline (K,), starting at 0."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+
+
+def resample(p: np.ndarray, spacing: float) -> np.ndarray:
+    """Evenly spaced points along a polyline, both ends kept; the step is the length divided
+    into round(length / spacing) equal parts, so it is within half a step of `spacing`."""
+    s = arc_length(p)
+    if s[-1] <= 0:
+        return p[:1].copy()
+    n = max(int(round(s[-1] / spacing)), 1) + 1
+    t = np.linspace(0.0, s[-1], n)
+    return np.column_stack([np.interp(t, s, p[:, k]) for k in range(3)])
+
+
+def smooth_resample(poly: np.ndarray, spacing_m: float, smoothing_m: float, closed: bool = False) -> np.ndarray:
+    """B-spline through a branch polyline (RMS deviation about `smoothing_m`, ends held), then
+    evenly spaced at `spacing_m` of arc length. A closed branch repeats its first point last."""
+    p = _checks.points(poly, "poly", 2)
+    spacing = _checks.positive(spacing_m, "spacing_m")
+    smoothing = _checks.non_negative(smoothing_m, "smoothing_m")
+    keep = np.ones(len(p), dtype=bool)
+    keep[1:] = np.linalg.norm(np.diff(p, axis=0), axis=1) > 1e-9  # splprep rejects repeated points
+    p = p[keep]
+    if closed and np.linalg.norm(p[-1] - p[0]) > 1e-9:
+        p = np.vstack([p, p[:1]])
+    m = len(p)
+    if m < 2:
+        return p.copy()
+    k = min(3, m - 1 - (1 if closed else 0))
+    if k < 1 or (closed and m < 4):
+        return resample(p, spacing)
+    w = np.ones(m)
+    if not closed:
+        w[[0, -1]] = _END_WEIGHT
+    tck, _ = splprep(p.T, w=w, k=k, s=m * smoothing ** 2, per=int(closed), quiet=2)
+    dense = np.array(splev(np.linspace(0.0, 1.0, max(20 * m, 200)), tck)).T
+    if not closed:
+        dense[0], dense[-1] = p[0], p[-1]
+    return resample(dense, spacing)
+
+
+class Surface:
+    """The measured surface around the drawing, indexed once: PCA normals oriented toward the
+    sensors that saw each patch, and snapping onto it."""
+
+    def __init__(self, xyz: np.ndarray, origin: np.ndarray | None, viewpoint: np.ndarray | None,
+                 radius_m: float, name: str = "surface") -> None:
+        self.xyz = _checks.points(xyz, f"{name}.xyz", 3)
+        self.radius = _checks.positive(radius_m, "normal_radius_m")
+        if origin is None:
+            origin = np.full_like(self.xyz, np.nan)
+        origin = np.asarray(origin, dtype=np.float64)
+        if origin.shape != self.xyz.shape:
+            raise ValueError(f"{name}.origin must have shape {self.xyz.shape}, got {origin.shape}")
+        self.origin = origin
+        if viewpoint is not None:
+            viewpoint = np.asarray(viewpoint, dtype=np.float64)
+            if viewpoint.shape != (3,) or not np.all(np.isfinite(viewpoint)):
+                raise ValueError(f"viewpoint must be a finite (3,) point, got {viewpoint!r}")
+        self.viewpoint = viewpoint
+        seen = np.all(np.isfinite(origin), axis=1)
+        self._mean_origin = origin[seen].mean(axis=0) if seen.any() else None
+        if self._mean_origin is None and self.viewpoint is None:
+            raise ValueError(f"{name}.origin has no finite sensor position and no viewpoint was given: "
+                             "normals cannot be oriented")
+        self.tree = cKDTree(self.xyz)
+
+    def normals(self, at: np.ndarray) -> np.ndarray:
+        """Outward unit normals (M,3) at points near the surface: the least-variance direction of
+        the nearest surface points within the radius (all NORMAL_NEIGHBOURS nearest where fewer
+        than a handful lie inside), on the side of the sensors that saw them."""
+        at = np.asarray(at, dtype=np.float64)
+        k = min(NORMAL_NEIGHBOURS, len(self.xyz))
+        d, idx = self.tree.query(at, k=k)
+        d, idx = d.reshape(len(at), k), idx.reshape(len(at), k)
+        w = (d <= self.radius).astype(np.float64)
+        sparse = w.sum(axis=1) < _MIN_NORMAL_NEIGHBOURS
+        w[sparse] = 1.0
+        P = self.xyz[idx]  # (M,k,3)
+        W = w.sum(axis=1)
+        c = np.einsum("mk,mkj->mj", w, P) / W[:, None]
+        D = P - c[:, None, :]
+        C = np.einsum("mk,mki,mkj->mij", w, D, D) / W[:, None, None]
+        n = np.linalg.eigh(C)[1][:, :, 0]  # eigenvalues ascending: the smallest is the normal
+        O = self.origin[idx] - P
+        ok = np.isfinite(O).all(axis=2) & (w > 0)
+        cnt = ok.sum(axis=1)
+        toward = np.einsum("mk,mkj->mj", ok.astype(np.float64), np.where(ok[..., None], O, 0.0))
+        toward = toward / np.maximum(cnt, 1)[:, None]
+        if (cnt == 0).any():
+            fallback = self.viewpoint if self.viewpoint is not None else self._mean_origin
+            toward[cnt == 0] = fallback - at[cnt == 0]
+        flip = np.einsum("mj,mj->m", n, toward) < 0
+        n[flip] *= -1.0
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    def snap(self, p: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """Move each point along its normal to the level of the nearest surface points: smoothing
+        cuts the corners of a bent plate, this puts the path back on the metal without moving it
+        along the surface."""
+        k = min(SNAP_NEIGHBOURS, len(self.xyz))
+        idx = self.tree.query(p, k=k)[1].reshape(len(p), k)
+        c = self.xyz[idx].mean(axis=1)
+        return p - np.einsum("mj,mj->m", p - c, n)[:, None] * n
+
+
+def on_surface(points: np.ndarray, surface: Surface, spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Snap evenly spaced points onto the surface and even them out again, thrice (snapping
+    stretches the steps where it pushes a cut corner back out). Returns (points, outward normals)."""
+    p = points
+    for _ in range(3):
+        n = surface.normals(p)
+        p = resample(surface.snap(p, n), spacing_m) if len(p) > 1 else surface.snap(p, n)
+    n = surface.normals(p)
+    return surface.snap(p, n), n
+
+
+def tangents(p: np.ndarray, closed: bool = False) -> np.ndarray:
+    """Unit travel directions (K,3) by central differences (one-sided at open ends)."""
+    if len(p) < 2:
+        return np.tile([1.0, 0.0, 0.0], (len(p), 1))
+    if closed:  # the last point repeats the first
+        nxt = np.vstack([p[1:], p[1:2]])
+        prv = np.vstack([p[-2:-1], p[:-1]])
+        t = nxt - prv
+    else:
+        t = np.gradient(p, axis=0)
+    return t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+
+
+def torch_poses(points: np.ndarray, normals: np.ndarray, standoff_m: float, closed: bool = False) -> np.ndarray:
+    """Torch tip poses (K,4,4) in the base frame: z into the material (against the outward
+    normal), tip `standoff_m` off the surface, x along the travel direction made orthogonal to z."""
+    p = _checks.points(points, "points")
+    n = _checks.points(normals, "normals")
+    if len(n) != len(p):
+        raise ValueError(f"normals must match points, got {len(n)} and {len(p)}")
+    standoff = _checks.non_negative(standoff_m, "standoff_m")
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    z = -n
+    x = tangents(p, closed)
+    x = x - np.einsum("kj,kj->k", x, z)[:, None] * z
+    bad = np.linalg.norm(x, axis=1) < 1e-6  # travel along the normal: any x will do
+    if bad.any():
+        helper = np.where(np.abs(z[bad, 0:1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+        x[bad] = helper - np.einsum("kj,kj->k", helper, z[bad])[:, None] * z[bad]
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    y = np.cross(z, x)
+    T = np.tile(np.eye(4), (len(p), 1, 1))
+    T[:, :3, 0], T[:, :3, 1], T[:, :3, 2] = x, y, z
+    T[:, :3, 3] = p + standoff * n
+    return T

@@ -1,0 +1,429 @@
+"""The drawing's topology: a 3-D skeleton of the drawing cloud as a graph of junctions, free ends
+and the branches between them, each branch an ordered polyline. A cut needs every branch, not
+just the longest path `planners.skeleton.order_curve` gives a scanning planner."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components, depth_first_order, dijkstra
+from scipy.spatial import cKDTree
+from skimage.morphology import skeletonize
+
+from planners.cutpath import _checks
+from planners.skeleton import skeleton_graph, voxelize
+
+JUNCTION, END, LOOP = "junction", "end", "loop"
+
+
+@dataclass
+class DrawingGraph:
+    """Key nodes (junctions, free ends, one start node per closed loop) and the branches between
+    them. Branch i runs from node ends[i][0] to ends[i][1]; its first and last points are those
+    nodes' positions (a closed loop starts and ends on its own node)."""
+
+    nodes: np.ndarray  # (M,3) metres
+    kinds: list[str]  # JUNCTION | END | LOOP per node
+    branches: list[np.ndarray]  # (K_i,3) ordered polylines, metres
+    ends: list[tuple[int, int]]
+    voxel_m: float
+    lengths_m: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.lengths_m = np.array([polyline_length(b) for b in self.branches], dtype=np.float64)
+
+    def _of_kind(self, kind: str) -> np.ndarray:
+        idx = [i for i, k in enumerate(self.kinds) if k == kind]
+        return self.nodes[idx].reshape(-1, 3)
+
+    @property
+    def junctions(self) -> np.ndarray:
+        return self._of_kind(JUNCTION)
+
+    @property
+    def endpoints(self) -> np.ndarray:
+        return self._of_kind(END)
+
+    def closed(self, i: int) -> bool:
+        a, b = self.ends[i]
+        return a == b and self.kinds[a] == LOOP
+
+
+def polyline_length(p: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if len(p) > 1 else 0.0
+
+
+def _without_shortcuts(G) -> csr_matrix:
+    """Symmetric 26-adjacency minus the diagonal edges that a two-step path of shorter steps also
+    joins: the staircase triangles a 26-connected skeleton is full of would otherwise make every
+    corner a degree-3 "junction". Connectivity is unchanged (the two-step path stays)."""
+    S = (G + G.T).tocoo()
+    n = S.shape[0]
+    cls = np.rint(S.data ** 2).astype(np.int64)  # 1 face, 2 edge, 3 corner neighbour
+    keep = np.ones(len(cls), dtype=bool)
+    for c in (2, 3):
+        m = cls == c
+        if not m.any():
+            continue
+        lo = cls < c
+        L = csr_matrix((np.ones(lo.sum()), (S.row[lo], S.col[lo])), shape=(n, n))
+        two_step = (L @ L).tocsr()
+        hit = np.asarray(two_step[S.row[m], S.col[m]]).ravel() > 0
+        keep[np.flatnonzero(m)[hit]] = False
+    return csr_matrix((S.data[keep], (S.row[keep], S.col[keep])), shape=(n, n))
+
+
+class _Builder:
+    """Mutable key nodes and branches while spurs are pruned and junctions dissolved."""
+
+    def __init__(self) -> None:
+        self.pos: dict[int, np.ndarray] = {}
+        self.kind: dict[int, str] = {}
+        self.branches: dict[int, list] = {}  # id -> [points, a, b]
+        self._next_key = 0
+        self._next_branch = 0
+
+    def key(self, pos: np.ndarray, kind: str) -> int:
+        k = self._next_key
+        self._next_key += 1
+        self.pos[k], self.kind[k] = np.asarray(pos, dtype=np.float64), kind
+        return k
+
+    def branch(self, pts: np.ndarray, a: int, b: int) -> None:
+        self.branches[self._next_branch] = [pts, a, b]
+        self._next_branch += 1
+
+    def degree(self) -> dict[int, int]:
+        d = dict.fromkeys(self.pos, 0)
+        for _, a, b in self.branches.values():
+            d[a] += 1
+            d[b] += 1
+        return d
+
+    def drop_branch(self, i: int) -> None:
+        del self.branches[i]
+
+    def settle(self) -> None:
+        """Junctions left with two branches become ordinary points, with one an end, with none
+        nothing; repeated because each merge can change another junction's degree."""
+        changed = True
+        while changed:
+            changed = False
+            deg = self.degree()
+            for k, d in deg.items():
+                if self.kind[k] != JUNCTION or d >= 3:
+                    continue
+                changed = True
+                if d == 0:
+                    del self.pos[k], self.kind[k]
+                elif d == 1:
+                    self.kind[k] = END
+                else:
+                    self._merge_at(k)
+                break  # degrees changed: recount
+
+    def _merge_at(self, k: int) -> None:
+        at = [i for i, (_, a, b) in self.branches.items() if k in (a, b)]
+        if len(at) == 1:  # a loop through k and nothing else: a closed curve
+            self.kind[k] = LOOP
+            return
+        i, j = at
+        p, a, b = self.branches.pop(i)
+        q, c, d = self.branches.pop(j)
+        if a == k:
+            p, a, b = p[::-1], b, a
+        if d == k:
+            q, c, d = q[::-1], d, c
+        self.branch(np.vstack([p, q[1:]]), a, d)
+        del self.pos[k], self.kind[k]
+        if a == d and self.kind[a] == END:  # impossible for a true end; keep the graph sane
+            self.kind[a] = LOOP
+
+
+def _trace(A: csr_matrix, pos: np.ndarray) -> _Builder:
+    """Key nodes and ordered branches of the thinned skeleton graph."""
+    out = _Builder()
+    n = A.shape[0]
+    deg = np.diff(A.indptr)
+    J = deg >= 3
+    R = (deg == 1) | (deg == 2)
+
+    jidx = np.flatnonzero(J)
+    cluster = np.full(n, -1, dtype=np.int64)
+    if len(jidx):
+        n_j, jlab = connected_components(A[jidx][:, jidx], directed=False)
+        cluster[jidx] = jlab
+        count = np.bincount(jlab, minlength=n_j)
+        centroid = np.stack([np.bincount(jlab, pos[jidx, k], n_j) for k in range(3)], axis=1) / count[:, None]
+        jkey = [out.key(c, JUNCTION) for c in centroid]
+
+    ridx = np.flatnonzero(R)
+    if len(ridx) == 0:
+        return out
+    AR = A[ridx][:, ridx].tocsr()
+    n_s, slab = connected_components(AR, directed=False)
+    deg_r = np.diff(AR.indptr)
+
+    coo = A.tocoo()
+    m = R[coo.row] & J[coo.col]
+    border: dict[int, list[int]] = {}
+    for u, c in zip(coo.row[m].tolist(), cluster[coo.col[m]].tolist()):  # ~2 pairs per branch
+        border.setdefault(u, []).append(jkey[c])
+
+    by_seg = np.argsort(slab, kind="stable")
+    cuts = np.flatnonzero(np.diff(slab[by_seg])) + 1
+    for members in np.split(by_seg, cuts):  # one per branch
+        tips = members[deg_r[members] <= 1]
+        start = int(tips[0]) if len(tips) else int(members[0])
+        order = depth_first_order(AR, start, directed=False, return_predecessors=False)
+        g = ridx[order]
+        pts = pos[g]
+        if len(tips) == 0:  # a closed curve with no junction on it
+            k = out.key(pts[0], LOOP)
+            out.branch(np.vstack([pts, pts[:1]]), k, k)
+            continue
+        f, l = int(g[0]), int(g[-1])
+        if len(g) == 1 and deg[f] == 2:  # one voxel between two junction voxels
+            a, b = border[f][0], border[f][1]
+        elif len(g) == 1:  # an end right next to a junction
+            a, b = out.key(pts[0], END), border[f][0]
+        else:
+            a = out.key(pts[0], END) if deg[f] == 1 else border[f][0]
+            b = out.key(pts[-1], END) if deg[l] == 1 else border[l][0]
+        if out.kind[a] == JUNCTION:
+            pts = np.vstack([out.pos[a], pts])
+        if out.kind[b] == JUNCTION:
+            pts = np.vstack([pts, out.pos[b]])
+        out.branch(pts, a, b)
+    return out
+
+
+def _prune(g: _Builder, min_branch_m: float) -> None:
+    """Remove spurs (a junction-to-end branch, or a junction's loop onto itself) shorter than
+    min_branch_m, the shortest first, so that of a short line with a hair the line survives; then
+    drop isolated pieces that short: noise, not a line to cut."""
+    g.settle()
+    while True:
+        best, best_len = None, min_branch_m
+        for i, (p, a, b) in g.branches.items():
+            ka, kb = g.kind[a], g.kind[b]
+            spur = {ka, kb} == {JUNCTION, END} or (a == b and ka == JUNCTION)
+            if spur:
+                L = polyline_length(p)
+                if L < best_len:
+                    best, best_len = i, L
+        if best is None:
+            break
+        _, a, b = g.branches[best]
+        g.drop_branch(best)
+        for k in {a, b}:
+            if g.kind[k] == END:
+                del g.pos[k], g.kind[k]
+        g.settle()
+    for i, (p, a, b) in list(g.branches.items()):
+        if g.kind[a] != JUNCTION and g.kind[b] != JUNCTION and (polyline_length(p) < min_branch_m or len(p) < 2):
+            g.drop_branch(i)
+    used = {k for _, a, b in g.branches.values() for k in (a, b)}
+    for k in [k for k in g.pos if k not in used]:
+        del g.pos[k], g.kind[k]
+
+
+def _half_width(c: np.ndarray, t: np.ndarray, xyz: np.ndarray, tree: cKDTree, voxel: float) -> float:
+    """Half the line's width at centre-line point `c` (direction `t`): the spread of the paint in
+    a thin slab across the line there."""
+    v = xyz[tree.query_ball_point(c, max(8.0 * voxel, 0.04))] - c
+    slab = v[np.abs(v @ t) < max(voxel, 0.003)]
+    if len(slab) < 4:
+        return voxel
+    slab = slab - slab.mean(axis=0)
+    sv = np.linalg.svd(slab, full_matrices=False)[1]
+    return max(float(np.sqrt(3.0) * sv[0] / np.sqrt(len(slab))), 0.5 * voxel)  # uniform across: std = w/√12
+
+
+def _cap_centre(e: np.ndarray, xyz: np.ndarray, tree: cKDTree, hw: float) -> np.ndarray:
+    """Mean shift to the centre of a line's round end cap: a disc of paint of the line's half
+    width round it is symmetric about it, so that centre is where the centroid stays put."""
+    for _ in range(10):
+        near = tree.query_ball_point(e, hw)
+        if len(near) < 3:
+            break
+        c = xyz[near].mean(axis=0)
+        done = np.linalg.norm(c - e) < 1e-4
+        e = c
+        if done:
+            break
+    return e
+
+
+def _paint_ahead(e: np.ndarray, t: np.ndarray, xyz: np.ndarray, tree: cKDTree, hw: float,
+                 voxel: float) -> np.ndarray | None:
+    """Where the paint ahead of a skeleton end `e` (tangent `t`) really ends: the paint point
+    geodesically farthest from `e` (through the paint, across gaps of up to 1.5 voxels), less half
+    a width `hw`, since a sprayed line ends in a round cap centred on its end. Returns the path on
+    from `e` to that end (K,3), or None when the paint stops at `e`."""
+    reach = max(10.0 * hw, 8.0 * voxel)
+    P = xyz[tree.query_ball_point(e, reach)]
+    v = P - e
+    along = v @ t
+    lateral = np.linalg.norm(v - along[:, None] * t, axis=1)
+    keep = (along > -hw) & (lateral < 2.0 * hw + voxel)
+    P, along = P[keep], along[keep]
+    if len(P) < 3:
+        return None
+    sub = cKDTree(P)
+    pairs = sub.query_pairs(1.5 * voxel, output_type="ndarray")
+    if len(pairs) == 0:
+        return None
+    w = np.linalg.norm(P[pairs[:, 0]] - P[pairs[:, 1]], axis=1) + 1e-12
+    graph = csr_matrix((w, (pairs[:, 0], pairs[:, 1])), shape=(len(P), len(P)))
+    sources = np.atleast_1d(sub.query(e, k=min(5, len(P)))[1])
+    dist, pred, src = dijkstra(graph, directed=False, indices=sources, min_only=True, return_predecessors=True)
+    reached = np.isfinite(dist)
+    dist[reached] += np.linalg.norm(P[src[reached]] - e, axis=1)
+    # the cap is ahead, not beside or behind the end, and is paint, not a stray speck next to it
+    crowd = sub.query_ball_point(P, 1.5 * voxel, return_length=True)
+    dist[~reached | (along <= 0) | (crowd < 0.25 * np.median(crowd))] = -1.0
+    far = int(np.argmax(dist))
+    path = [far]
+    while pred[path[-1]] >= 0:  # a walk over the few path points
+        path.append(int(pred[path[-1]]))
+    q = np.vstack([e, P[path[::-1]]])
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(q, axis=0), axis=1))])
+    # the path zigzags from point to point, so go back from the cap's tip in a straight line
+    tip = q[-1]
+    before = np.array([np.interp(s[-1] - 2.0 * hw, s, q[:, k]) for k in range(3)])
+    u = tip - before if np.linalg.norm(tip - before) > 1e-9 else t
+    end = tip - hw * u / np.linalg.norm(u)
+    stop = s[-1] - hw
+    ts = np.arange(voxel, stop - 0.5 * voxel, voxel)
+    out = np.vstack([np.column_stack([np.interp(ts, s, q[:, k]) for k in range(3)]), end])
+    out[-1] = _cap_centre(out[-1], xyz, tree, hw)
+    if (out[-1] - e) @ t <= 0.25 * voxel:
+        return None
+    return out
+
+
+def _extend_ends(g: _Builder, xyz: np.ndarray, tree: cKDTree, voxel: float, rounds: int = 5) -> None:
+    """Thinning eats into a line's ends (by several widths on noisy or flat clouds): each free end
+    is carried on through the paint, a reach at a time, to where the line really ends."""
+    back = 6.0 * voxel  # the end's direction and width are taken this far back along the branch
+    for i, (p, a, b) in g.branches.items():  # a handful of branches
+        for at_start in (True, False):
+            k = a if at_start else b
+            if g.kind[k] != END or len(p) < 2:
+                continue
+            q = p[::-1] if at_start else p  # q[-1] is this end
+            moved, hw = False, None
+            for _ in range(rounds):
+                to_end = np.concatenate([np.cumsum(np.linalg.norm(np.diff(q, axis=0), axis=1)[::-1])[::-1], [0.0]])
+                j = min(int(np.flatnonzero(to_end <= back)[0]), len(q) - 2)
+                t = q[-1] - q[j]
+                if np.linalg.norm(t) < 1e-12:
+                    break
+                t = t / np.linalg.norm(t)
+                hw = _half_width(q[j], t, xyz, tree, voxel)
+                more = _paint_ahead(q[-1], t, xyz, tree, hw, voxel)
+                if more is None:
+                    break
+                q, moved = np.vstack([q, more]), True
+            if not moved and hw is not None:  # thinning may also stop inside the cap
+                e = _cap_centre(q[-1], xyz, tree, hw)
+                if np.linalg.norm(e - q[-1]) > voxel:  # not a round cap (an edge, other paint near)
+                    e = q[-1]
+                beyond = (q[:-1] - e) @ t >= -0.25 * voxel
+                beyond[: max(len(q) - 1 - int(np.ceil(back / voxel)), 1)] = False  # only near the end
+                if not beyond.all():
+                    q = np.vstack([q[:-1][~beyond], e])
+            g.pos[k] = q[-1].copy()
+            p = q[::-1] if at_start else q
+        g.branches[i][0] = p
+
+
+#: voxel grid variants tried in turn: (grid offset in voxels, axis grown by one voxel or None)
+_ATTEMPTS = ((0.0, None), (0.5, None), (0.0, 2), (0.0, 0), (0.0, 1))
+_GOOD_SPAN = 0.8
+_S26 = np.ones((3, 3, 3), dtype=bool)
+
+
+def _span_score(vol: np.ndarray, skel: np.ndarray) -> float:
+    """How much of the occupied volume the skeleton spans (sum over pieces of the skeleton's
+    bounding-box diagonal over the piece's), 0 when thinning broke the topology: a piece with no
+    skeleton left, or a skeleton in more pieces than the volume."""
+    lv, nv = ndimage.label(vol, _S26)
+    _, ns = ndimage.label(skel, _S26)
+    lab = lv[skel]
+    if ns != nv or len(np.unique(lab)) != nv:
+        return 0.0
+
+    def diag(ijk, labels):
+        lo = np.stack([ndimage.minimum(ijk[:, k], labels, np.arange(1, nv + 1)) for k in range(3)], axis=1)
+        hi = np.stack([ndimage.maximum(ijk[:, k], labels, np.arange(1, nv + 1)) for k in range(3)], axis=1)
+        return np.linalg.norm(hi - lo, axis=1) + 1.0
+
+    occupied = np.argwhere(vol)
+    return float(diag(np.argwhere(skel), lab).sum() / diag(occupied, lv[vol]).sum())
+
+
+def _skeleton(xyz: np.ndarray, voxel: float, closing: int):
+    """Thinned skeleton (voxel indices, 26-graph, centres in metres). skimage's 3-D thinning
+    (Lee) sometimes erases flat pieces of even thickness outright, or most of their length
+    (scikit-image#3757, still open): a flat plate lying square to the grid, the commonest scrap,
+    loses its line about one time in three. The grid is shifted or one axis grown by a voxel
+    until the skeleton keeps the volume's topology and spans most of it; else the best one."""
+    best = None
+    for shift, grow in _ATTEMPTS:
+        vol, lo = voxelize(xyz + shift * voxel, voxel, closing + 2)
+        if grow is not None:  # the padding keeps the roll from wrapping anything round
+            vol = vol | np.roll(vol, 1, axis=grow)
+        if closing > 0:
+            vol = ndimage.binary_closing(vol, structure=_S26, iterations=closing)
+        skel = skeletonize(vol) > 0
+        score = _span_score(vol, skel)
+        if best is None or score > best[0]:
+            offset = -shift - (0.5 * np.eye(3)[grow] if grow is not None else np.zeros(3))  # undo the shift/growth
+            best = (score, skel, lo, offset)
+        if score >= _GOOD_SPAN:
+            break
+    _, skel, lo, offset = best
+    ijk, G = skeleton_graph(skel)
+    return ijk, G, (ijk + lo + 0.5 + offset) * voxel
+
+
+def drawing_graph(xyz: np.ndarray, voxel_m: float = 0.005, min_branch_m: float = 0.03,
+                  closing_iterations: int = 1, extend_ends: bool = True) -> DrawingGraph:
+    """Skeleton graph of a drawing cloud (N,3): junctions (clusters of adjacent degree-≥3
+    skeleton voxels, at their centroid), free ends (degree 1) and one ordered polyline per branch
+    between them, spurs shorter than `min_branch_m` pruned, free ends carried on to where the paint
+    ends. Voxelization, gap closing and thinning are those of `order_curve`, made robust to the
+    thinning's habit of erasing flat pieces (see `_skeleton`)."""
+    xyz = _checks.points(xyz, "xyz")
+    voxel = _checks.positive(voxel_m, "voxel_m")
+    min_branch = _checks.non_negative(min_branch_m, "min_branch_m")
+    if not isinstance(closing_iterations, (int, np.integer)) or closing_iterations < 0:
+        raise ValueError(f"closing_iterations must be a non-negative integer, got {closing_iterations!r}")
+    extent = xyz.max(axis=0) - xyz.min(axis=0)
+    cells = np.prod(extent / voxel + 2 * closing_iterations + 6)
+    if cells > 2e8:
+        raise ValueError(f"voxel_m={voxel} is too small for a drawing spanning {extent.round(3).tolist()} m "
+                         f"({cells:.2g} voxels)")
+    tree = cKDTree(xyz)
+    crowd = tree.query_ball_point(xyz, voxel, return_length=True)
+    dense = crowd >= max(3.0, 0.25 * float(np.median(crowd)))  # a stray speck would grow a false end
+    if dense.sum() >= 0.5 * len(xyz):  # else the cloud is just sparse: keep it all
+        xyz = xyz[dense]
+        tree = cKDTree(xyz)
+    ijk, G, pos = _skeleton(xyz, voxel, int(closing_iterations))
+    A = _without_shortcuts(G)
+    b = _trace(A, pos)
+    _prune(b, min_branch)
+    if extend_ends:
+        _extend_ends(b, xyz, tree, voxel)
+    keys = list(b.pos)
+    new_id = {k: i for i, k in enumerate(keys)}
+    nodes = np.array([b.pos[k] for k in keys], dtype=np.float64).reshape(-1, 3)
+    branches = [p for p, _, _ in b.branches.values()]
+    ends = [(new_id[a], new_id[c]) for _, a, c in b.branches.values()]
+    return DrawingGraph(nodes, [b.kind[k] for k in keys], branches, ends, voxel)

@@ -1,0 +1,116 @@
+"""Camera moves planned with IK + FCL + Ruckig: straight when clear, via waypoints around an obstacle,
+refused with a reason when nothing is clear; and the arm's own returns are recognised."""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+import pybullet_data
+import pytest
+
+from planners.motion.collision import CollisionChecker, RobotCollisionModel
+from planners.motion.ik import Unreachable
+from planners.motion.kinematics import Kinematics
+from planners.motion.limits import (PANDA_JOINT_NAMES, PANDA_MAX_ACCELERATION, PANDA_MAX_JERK, PANDA_MAX_VELOCITY,
+                                    PANDA_Q_MAX, PANDA_Q_MIN)
+from planners.motion.view_motion import ViewMotionPlanner
+from planners.views import look_at_rotations, poses_from
+
+URDF = os.path.join(pybullet_data.getDataPath(), "franka_panda", "panda.urdf")
+HOME = np.array([0.0, -0.7, 0.0, -1.7, 0.0, 1.5, 0.785])  # the twin's home
+
+
+def hand_eye() -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = [0.07, 0.0, 0.05]
+    return T
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return RobotCollisionModel(URDF, PANDA_JOINT_NAMES, "panda_hand", hand_eye())
+
+
+@pytest.fixture()
+def planner(robot):
+    kin = Kinematics(URDF, PANDA_JOINT_NAMES, "panda_hand", hand_eye(), lower=PANDA_Q_MIN, upper=PANDA_Q_MAX)
+    checker = CollisionChecker(robot)
+    return ViewMotionPlanner(kin, PANDA_MAX_VELOCITY, PANDA_MAX_ACCELERATION, PANDA_MAX_JERK, checker,
+                             park_q=HOME), checker
+
+
+def view(eye, target) -> np.ndarray:
+    eye = np.asarray(eye, float)[None]
+    return poses_from(eye, look_at_rotations(eye, np.asarray(target, float)))
+
+
+def slab(lo, hi, voxel=0.01) -> np.ndarray:
+    axes = [np.arange(a + voxel / 2, b, voxel) for a, b in zip(lo, hi)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def test_clear_move_goes_straight_and_reaches_the_pose(planner):
+    mp, checker = planner
+    T = view([0.45, 0.25, 0.45], [0.55, 0.0, 0.1])
+    mv = mp.plan(HOME, T)
+    assert mv.via == "direct" and mv.index == 0 and mv.tried == 1
+    T_end = mp.kin.fk(mv.path.positions[-1])
+    assert np.linalg.norm(T_end[:3, 3] - T[0][:3, 3]) < 1e-3
+    assert math.degrees(math.acos(np.clip(T_end[:3, 2] @ T[0][:3, 2], -1, 1))) < 0.5
+    assert checker.check_path(mv.path.positions) is None
+
+
+def test_a_wall_in_the_way_is_gone_around_and_the_path_is_clear(planner):
+    mp, checker = planner
+    start = mp.plan(HOME, view([0.45, 0.30, 0.45], [0.5, 0.3, 0.0])).q_goal
+    goal = view([0.45, -0.30, 0.45], [0.5, -0.3, 0.0])
+    wall = slab([0.25, -0.05, 0.0], [0.75, 0.05, 0.42])  # a wall between the views, just below the camera
+    checker.set_scene(wall, 0.01)
+    straight = mp._path([start, mp._ik(goal[0], start)])
+    assert checker.check_path(straight.positions) is not None  # the straight joint motion would hit it
+    mv = mp.plan(start, goal)
+    assert mv.via != "direct"
+    assert checker.check_path(mv.path.positions) is None
+    assert np.linalg.norm(mp.kin.fk(mv.path.positions[-1])[:3, 3] - goal[0][:3, 3]) < 1e-3
+
+
+def test_no_clear_candidate_is_refused_with_the_reasons(planner):
+    mp, checker = planner
+    inside = view([0.5, 0.0, 0.3], [0.5, 0.0, 0.0])  # the camera would sit inside the block
+    far = view([2.5, 0.0, 0.3], [3.0, 0.0, 0.0])
+    checker.set_scene(slab([0.4, -0.1, 0.2], [0.6, 0.1, 0.4]), 0.01)
+    with pytest.raises(Unreachable, match=r"none of 2 candidate views .*1 beyond reach, 1 no collision-free IK"):
+        mp.plan(HOME, np.concatenate([inside, far]))
+    with pytest.raises(ValueError, match="poses must have shape"):
+        mp.plan(HOME, np.zeros((0, 4, 4)))
+
+
+def test_a_start_inside_a_new_obstacle_may_back_out(planner):
+    mp, checker = planner
+    T_home = mp.kin.fk(HOME)
+    # a small plate of voxels just in front of the camera at home: the arm may back out, not go through
+    c = T_home[:3, 3] + 0.03 * T_home[:3, 2]
+    checker.set_scene(slab(c - 0.015, c + 0.015), 0.01)
+    assert checker.in_collision(HOME)
+    back = T_home.copy()
+    back[:3, 3] -= 0.15 * T_home[:3, 2]
+    mv = mp.plan(HOME, back[None])
+    assert not checker.in_collision(mv.path.positions[-1])
+    through = T_home.copy()
+    through[:3, 3] += 0.12 * T_home[:3, 2]
+    with pytest.raises(Unreachable):
+        mp.plan(HOME, through[None])
+
+
+def test_returns_on_the_arm_are_recognised(robot):
+    P = robot.part_poses(HOME)
+    names = robot.part_names
+    T = P[names.index("panda_link4")]
+    on_link = T[:3, 3] + T[:3, :3] @ robot.parts[names.index("panda_link4")].vertices.mean(axis=0)
+    away = on_link + [0.0, 0.0, 0.3]
+    mask = robot.on_robot(np.array([on_link, away, [0.6, 0.0, 0.05]]), HOME, 0.02)
+    assert mask.tolist() == [True, False, False]
+    with pytest.raises(ValueError):
+        robot.on_robot(np.zeros((3, 2)), HOME)
