@@ -7,14 +7,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components, depth_first_order, dijkstra
 from scipy.spatial import cKDTree
-from skimage.morphology import skeletonize
 
 from planners.cutpath import _checks
-from planners.skeleton import skeleton_graph, voxelize
+from planners.skeleton import thin
 
 JUNCTION, END, LOOP = "junction", "end", "loop"
 
@@ -343,55 +341,6 @@ def _extend_ends(g: _Builder, xyz: np.ndarray, tree: cKDTree, voxel: float, roun
 
 
 #: voxel grid variants tried in turn: (grid offset in voxels, axis grown by one voxel or None)
-_ATTEMPTS = ((0.0, None), (0.5, None), (0.0, 2), (0.0, 0), (0.0, 1))
-_GOOD_SPAN = 0.8
-_S26 = np.ones((3, 3, 3), dtype=bool)
-
-
-def _span_score(vol: np.ndarray, skel: np.ndarray) -> float:
-    """How much of the occupied volume the skeleton spans (sum over pieces of the skeleton's
-    bounding-box diagonal over the piece's), 0 when thinning broke the topology: a piece with no
-    skeleton left, or a skeleton in more pieces than the volume."""
-    lv, nv = ndimage.label(vol, _S26)
-    _, ns = ndimage.label(skel, _S26)
-    lab = lv[skel]
-    if ns != nv or len(np.unique(lab)) != nv:
-        return 0.0
-
-    def diag(ijk, labels):
-        lo = np.stack([ndimage.minimum(ijk[:, k], labels, np.arange(1, nv + 1)) for k in range(3)], axis=1)
-        hi = np.stack([ndimage.maximum(ijk[:, k], labels, np.arange(1, nv + 1)) for k in range(3)], axis=1)
-        return np.linalg.norm(hi - lo, axis=1) + 1.0
-
-    occupied = np.argwhere(vol)
-    return float(diag(np.argwhere(skel), lab).sum() / diag(occupied, lv[vol]).sum())
-
-
-def _skeleton(xyz: np.ndarray, voxel: float, closing: int):
-    """Thinned skeleton (voxel indices, 26-graph, centres in metres). skimage's 3-D thinning
-    (Lee) sometimes erases flat pieces of even thickness outright, or most of their length
-    (scikit-image#3757, still open): a flat plate lying square to the grid, the commonest scrap,
-    loses its line about one time in three. The grid is shifted or one axis grown by a voxel
-    until the skeleton keeps the volume's topology and spans most of it; else the best one."""
-    best = None
-    for shift, grow in _ATTEMPTS:
-        vol, lo = voxelize(xyz + shift * voxel, voxel, closing + 2)
-        if grow is not None:  # the padding keeps the roll from wrapping anything round
-            vol = vol | np.roll(vol, 1, axis=grow)
-        if closing > 0:
-            vol = ndimage.binary_closing(vol, structure=_S26, iterations=closing)
-        skel = skeletonize(vol) > 0
-        score = _span_score(vol, skel)
-        if best is None or score > best[0]:
-            offset = -shift - (0.5 * np.eye(3)[grow] if grow is not None else np.zeros(3))  # undo the shift/growth
-            best = (score, skel, lo, offset)
-        if score >= _GOOD_SPAN:
-            break
-    _, skel, lo, offset = best
-    ijk, G = skeleton_graph(skel)
-    return ijk, G, (ijk + lo + 0.5 + offset) * voxel
-
-
 def drawing_graph(xyz: np.ndarray, voxel_m: float = 0.005, min_branch_m: float = 0.03,
                   closing_iterations: int = 1, extend_ends: bool = True) -> DrawingGraph:
     """Skeleton graph of a drawing cloud (N,3): junctions (clusters of adjacent degree-≥3
@@ -415,7 +364,7 @@ def drawing_graph(xyz: np.ndarray, voxel_m: float = 0.005, min_branch_m: float =
     if dense.sum() >= 0.5 * len(xyz):  # else the cloud is just sparse: keep it all
         xyz = xyz[dense]
         tree = cKDTree(xyz)
-    ijk, G, pos = _skeleton(xyz, voxel, int(closing_iterations))
+    ijk, G, pos = thin(xyz, voxel, int(closing_iterations))
     A = _without_shortcuts(G)
     b = _trace(A, pos)
     _prune(b, min_branch)
