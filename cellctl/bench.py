@@ -103,6 +103,8 @@ def run_record(scene: str, category: int | None, planner: str, seed: int, result
         "coverage": {"hit": int(result.coverage_hit), "total": int(result.coverage_total),
                      "percent": float(result.coverage_percent)},
         "terminated_by": result.terminated_by,
+        "motion_contacts": int(result.motion_contacts),  # the twin's own check of every move
+        "cut_feasible_poses": None if not result.cut else [result.cut["feasible_poses"], result.cut["poses"]],
         # after each captured view (the initial one first): drawing coverage and planning time so far,
         # so planners can be compared at equal coverage, not only at their own stop
         "coverage_by_view": [r.coverage_percent for r in result.records],

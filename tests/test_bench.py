@@ -227,7 +227,8 @@ def test_quick_bench_end_to_end(tmp_path):
     assert {"cpus", "python", "platform"} <= set(doc["machine"])
     keys = {"scene", "category", "planner", "seed", "views", "viewpoints", "planning_s", "step_s", "capture_s",
             "motion_s", "motion_planning_s", "displacement_m", "coverage", "terminated_by", "peak_memory_mb",
-            "wall_s", "error", "run_dir", "coverage_by_view", "planning_s_by_view"}
+            "wall_s", "error", "run_dir", "coverage_by_view", "planning_s_by_view", "motion_contacts",
+            "cut_feasible_poses"}
     got = set()
     for r in doc["runs"]:
         assert keys <= set(r), keys - set(r)
@@ -238,6 +239,7 @@ def test_quick_bench_end_to_end(tmp_path):
         assert r["planning_s"] >= 0 and r["displacement_m"] >= 0 and r["peak_memory_mb"] > 0
         assert r["category"] in (1, 3)
         assert len(r["coverage_by_view"]) == len(r["planning_s_by_view"]) == r["views"]
+        assert r["motion_contacts"] == 0
         assert r["coverage_by_view"][-1] == c["percent"] and sorted(r["planning_s_by_view"]) == r["planning_s_by_view"]
         assert (out / r["run_dir"] / "result.json").is_file() and (out / r["run_dir"] / "coverage.png").is_file()
         got.add((r["scene"], r["planner"], r["seed"]))

@@ -326,7 +326,7 @@ def set_q(cid, body, joints, q):
 def test_scene_verdicts_agree_with_pybullet_distances(bullet):
     """A 4 cm voxel cube near a random part: collision iff pybullet's distance < margin."""
     cid, body, joints, links = bullet
-    robot = RobotCollisionModel(URDF, PANDA_JOINT_NAMES, FLANGE, hand_eye(), camera_box_m=None)
+    robot = RobotCollisionModel(URDF, PANDA_JOINT_NAMES, FLANGE, hand_eye(), camera_box_m=None, sweep_gripper=False)
     ch = CollisionChecker(robot, CollisionConfig(margin_m=0.02, floor_margin_m=0.0, self_collision=False))
     half = 0.02
     cube = p.createMultiBody(0, p.createCollisionShape(p.GEOM_BOX, halfExtents=[half] * 3, physicsClientId=cid),
@@ -399,3 +399,24 @@ def test_invalid_inputs_are_rejected(checker, robot):
         CollisionChecker("panda")
     with pytest.raises(ValueError, match="urdf_path"):
         RobotCollisionModel(URDF + ".missing", PANDA_JOINT_NAMES, FLANGE, hand_eye())
+
+
+def test_finger_hulls_cover_the_open_gripper(robot, bullet):
+    """The kinematic model holds the fingers closed; the swept hulls still contain the fingers of a
+    gripper opened to 4 cm each (placed by pybullet), which the closed hulls do not."""
+    cid, body, joints, links = bullet
+    q = PANDA_Q_READY
+    set_q(cid, body, joints, q)
+    closed = RobotCollisionModel(URDF, PANDA_JOINT_NAMES, FLANGE, hand_eye(), sweep_gripper=False)
+    try:
+        for name in ("panda_finger_joint1", "panda_finger_joint2"):
+            p.resetJointState(body, joints[name], 0.04, physicsClientId=cid)
+        for finger in ("panda_leftfinger", "panda_rightfinger"):
+            st = p.getLinkState(body, links[finger], computeForwardKinematics=True, physicsClientId=cid)
+            R = np.array(p.getMatrixFromQuaternion(st[5])).reshape(3, 3)
+            V = closed.parts[closed.part_names.index(finger)].vertices @ R.T + np.array(st[4])  # the open finger
+            assert robot.on_robot(V, q, 1e-6).all(), finger
+            assert not closed.on_robot(V, q, 1e-6).all(), finger
+    finally:
+        for name in ("panda_finger_joint1", "panda_finger_joint2"):
+            p.resetJointState(body, joints[name], 0.0, physicsClientId=cid)

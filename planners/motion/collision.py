@@ -214,6 +214,24 @@ def _urdf_collision_points(urdf_path: str) -> list[tuple[str, np.ndarray]]:
     return out
 
 
+def _prismatic_travel(urdf_path: str, arm_joints: Sequence[str]) -> dict[str, np.ndarray]:
+    """Child link -> its travel (axis x [lower, upper]) for prismatic joints outside the arm (the
+    gripper fingers): the model locks them at zero, the gripper may stand anywhere in its range."""
+    root = ET.parse(urdf_path).getroot()
+    out = {}
+    for j in root.findall("joint"):
+        if j.get("type") != "prismatic" or j.get("name") in arm_joints:
+            continue
+        child, lim, ax = j.find("child"), j.find("limit"), j.find("axis")
+        if child is None or lim is None:
+            continue
+        axis = np.asarray(_floats(None if ax is None else ax.get("xyz"), 3, 0.0, "joint axis")) if ax is not None \
+            else np.array([1.0, 0.0, 0.0])
+        lo, hi = float(lim.get("lower", 0.0)), float(lim.get("upper", 0.0))
+        out[child.get("link")] = np.outer([lo, hi], axis)  # joint frame == child link frame
+    return out
+
+
 def _inscribed_radius(poly: trimesh.Trimesh) -> float:
     v = poly.vertices[poly.faces[:, 0]]
     return float(np.min(np.abs(np.einsum("ij,ij->i", poly.face_normals, v))))
@@ -276,6 +294,8 @@ class RobotCollisionModel:
         torch: optional cylinder on the flange.
         home_q: a configuration free of self-collision (default: middle of the joint limits);
             pairs touching there and in each of 200 random samples are not self-checked.
+        sweep_gripper: the finger hulls cover their whole travel (closed to fully open), since
+            the kinematic model holds them closed while the real gripper may stand open.
 
     Raises:
         ValueError: unreadable URDF or mesh, bad link/joint names, bad shapes or poses.
@@ -291,6 +311,7 @@ class RobotCollisionModel:
         camera_box_m: Sequence[float] | None = (0.09, 0.025, 0.025),
         torch: TorchShape | None = None,
         home_q: np.ndarray | None = None,
+        sweep_gripper: bool = True,
     ) -> None:
         if not os.path.isfile(str(urdf_path)):
             raise ValueError(f"urdf_path {urdf_path!r} is not a file")
@@ -298,8 +319,11 @@ class RobotCollisionModel:
         kin = self.kin
         parts: list[_Part] = []
         seen: dict[str, int] = {}
+        travel = _prismatic_travel(kin.urdf_path, joint_names) if sweep_gripper else {}
         for link, pts in _urdf_collision_points(kin.urdf_path):
             kin.link_frame_id(link)
+            if link in travel:  # the hull swept over the joint's whole travel: any gripper opening
+                pts = np.concatenate([pts + d for d in travel[link]])
             k = seen.get(link, 0)
             seen[link] = k + 1
             parts.append(_Part(link if k == 0 else f"{link}#{k}", link, *_hull(pts)))
