@@ -420,3 +420,16 @@ def test_finger_hulls_cover_the_open_gripper(robot, bullet):
     finally:
         for name in ("panda_finger_joint1", "panda_finger_joint2"):
             p.resetJointState(body, joints[name], 0.0, physicsClientId=cid)
+
+
+def test_static_boxes_of_the_cell_are_obstacles(robot):
+    from planners.motion.collision import StaticBox
+
+    hand = robot.part_poses(PANDA_Q_READY)[robot.part_names.index("panda_hand")][:3, 3]
+    stand = StaticBox(name="stand", center_m=tuple(hand + [0, 0, -0.05]), size_m=(0.1, 0.1, 0.04))
+    hit = CollisionChecker(robot, CollisionConfig(static_boxes=[stand])).check(PANDA_Q_READY)
+    assert hit is not None and hit.kind == "static" and hit.other == "stand"
+    far = stand.model_copy(update={"center_m": (hand[0], hand[1] + 0.6, 0.05)})
+    assert CollisionChecker(robot, CollisionConfig(static_boxes=[far])).check(PANDA_Q_READY) is None
+    with pytest.raises(ValueError):
+        CollisionConfig(static_boxes=[{"name": "x", "center_m": [0, 0, 0], "size_m": [0, 1, 1]}])

@@ -58,6 +58,17 @@ _MAX_SAMPLES = 2_000_000  # resampled path rows, a guard against absurd step bou
 
 
 _Size = Annotated[float, Field(gt=0, le=0.5)]
+_Size3 = Annotated[float, Field(gt=0, le=10.0)]
+
+
+class StaticBox(BaseModel):
+    """A fixed obstacle of the cell (a stand, a table, a fence), axis-aligned in the base frame."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_-]{1,64}$")
+    center_m: tuple[float, float, float]
+    size_m: tuple[_Size3, _Size3, _Size3]
 
 
 class CollisionConfig(BaseModel):
@@ -71,6 +82,7 @@ class CollisionConfig(BaseModel):
     camera_box_m: D435 housing (x, y, z) in the camera optical frame: the long side along the
         camera x axis, centred on the optical frame origin.
     self_collision: also check pairs of robot parts against each other.
+    static_boxes: fixed obstacles of the cell (stand, table, fence), kept clear by margin_m.
     """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -81,6 +93,7 @@ class CollisionConfig(BaseModel):
     floor_margin_m: float = Field(0.02, ge=0, le=0.5)
     camera_box_m: tuple[_Size, _Size, _Size] = (0.09, 0.025, 0.025)
     self_collision: bool = True
+    static_boxes: list[StaticBox] = Field(default_factory=list, max_length=64)
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,7 +117,7 @@ class TorchShape:
 class Collision:
     """What collided, for error messages and for planners that want to react to it."""
 
-    kind: str  # "floor" | "scene" | "self"
+    kind: str  # "floor" | "static" | "scene" | "self"
     part: str  # robot part: URDF link name, "camera" or "torch"
     other: str  # "floor", "scene" or the other part
     q: np.ndarray = field(repr=False)  # the colliding configuration
@@ -616,6 +629,9 @@ class CollisionChecker:
         self._scene: fcl.CollisionObject | None = None
         self._scene_lo = self._scene_hi = None
         self.scene_voxels = 0
+        self._static = [(b.name, fcl.CollisionObject(fcl.Box(*b.size_m), fcl.Transform(np.asarray(b.center_m, float))),
+                         np.asarray(b.center_m) - np.asarray(b.size_m) / 2, np.asarray(b.center_m) + np.asarray(b.size_m) / 2)
+                        for b in cfg.static_boxes]
 
     @classmethod
     def for_arm(cls, arm_model, cfg: CollisionConfig | None = None, *,
@@ -765,12 +781,18 @@ class CollisionChecker:
         lowest = int(np.argmin(zmin))
         if zmin[lowest] < self.cfg.floor_margin_m:  # name the part that goes deepest
             return Collision("floor", names[self._moving[lowest]], "floor", q.copy())
-        # scene: world box of each inflated part against the scene's box, fcl for the overlapping
-        if self._scene is not None:
+        # scene and static boxes: world box of each inflated part against theirs, fcl for the overlapping
+        if self._scene is not None or self._static:
             Pm = P[self._moving]
             R = Pm[:, :3, :3]
             c = np.einsum("pij,pj->pi", R, self._box_c) + Pm[:, :3, 3]
             h = np.einsum("pij,pj->pi", np.abs(R), self._box_h)
+        for name, box, lo, hi in self._static:  # a handful of boxes
+            for k in np.flatnonzero(np.all((c + h >= lo) & (c - h <= hi), axis=1)):
+                _place(self._inflated[k], Pm[k])
+                if fcl.collide(self._inflated[k], box) > 0:
+                    return Collision("static", names[self._moving[k]], name, q.copy())
+        if self._scene is not None:
             over = np.all((c + h >= self._scene_lo) & (c - h <= self._scene_hi), axis=1)
             for k in np.flatnonzero(over):
                 obj = self._inflated[k]
@@ -790,6 +812,7 @@ __all__ = [
     "CollisionChecker",
     "CollisionConfig",
     "RobotCollisionModel",
+    "StaticBox",
     "TorchShape",
     "densify_joint_path",
     "grid_scene_voxels",
