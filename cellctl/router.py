@@ -1,0 +1,72 @@
+"""The yard's Zenoh router as a Python process: no zenohd package installs here, and a session opened
+in router mode is a real router (cells and tablets connect to it as clients; it routes queries,
+replies and events, and enforces authentication and access control from its config)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+from pathlib import Path
+
+import zenoh
+
+
+def router_config(path: str | Path, listen: list[str] | None = None, users_file: str | None = None) -> "zenoh.Config":
+    """The router's config from a JSON5 file, with the listen endpoints or credential file replaced
+    (a test or a second router on one host)."""
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"router config {p} does not exist")
+    try:
+        cfg = zenoh.Config.from_file(str(p))
+    except Exception as e:  # zenoh raises its own error type for a bad file
+        raise ValueError(f"router config {p} is not a valid Zenoh config: {e}") from None
+    cfg.insert_json5("mode", '"router"')
+    if listen:
+        cfg.insert_json5("listen/endpoints", json.dumps(listen))
+    if users_file:
+        if not Path(users_file).is_file():
+            raise ValueError(f"credential file {users_file} does not exist (make it with deploy/make-users.sh)")
+        cfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users_file)))
+    return cfg
+
+
+def run_router(cfg: "zenoh.Config", stop: threading.Event | None = None) -> None:
+    """Serve until SIGINT/SIGTERM (or `stop`), then close the session: an unclosed session can keep
+    the process alive for minutes."""
+    stop = stop or threading.Event()
+    session = zenoh.open(cfg)
+    try:
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, lambda *_: stop.set())
+        print(f"zenoh router {session.zid()} listening", file=sys.stderr, flush=True)
+        while not stop.wait(0.2):
+            pass
+    finally:
+        session.close()
+        print("zenoh router closed", file=sys.stderr, flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="cellctl router", description=__doc__)
+    ap.add_argument("--config", default=str(Path(__file__).resolve().parents[1] / "deploy/zenoh/router.json5"),
+                    help="router JSON5 config (default: deploy/zenoh/router.json5)")
+    ap.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
+                    help="listen endpoint, e.g. tcp/127.0.0.1:7447 (repeatable; default: the config's)")
+    ap.add_argument("--users", default=None, help="user:password file (default: the config's dictionary_file)")
+    args = ap.parse_args(argv)
+    try:
+        cfg = router_config(args.config, args.listen, args.users)
+    except ValueError as e:
+        print(f"cellctl router: {e}", file=sys.stderr)
+        return 2
+    run_router(cfg)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,16 @@
+#!/bin/sh
+# Make the router's credential file with fresh random passwords, and one file per user holding its
+# password (for the services' and tablets' configs). Nothing here belongs in git.
+#   deploy/make-users.sh /etc/scrapcell operator viewer cell-1 cell-2
+set -eu
+dir=${1:?usage: make-users.sh DIR USER...}
+shift
+umask 077
+mkdir -p "$dir"
+: > "$dir/zenoh-users.txt"
+for user in "$@"; do
+  pw=$(head -c 18 /dev/urandom | base64 | tr -d '/+=' | head -c 24)
+  printf '%s:%s\n' "$user" "$pw" >> "$dir/zenoh-users.txt"
+  printf '%s\n' "$pw" > "$dir/$user.password"
+done
+echo "wrote $dir/zenoh-users.txt and one .password file per user"
