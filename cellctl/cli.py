@@ -28,6 +28,129 @@ def _bench(args: argparse.Namespace) -> int:
     return cli_bench(args)
 
 
+def _serve(args: argparse.Namespace) -> int:
+    from cellctl.config import load_cell_config
+    from cellctl.service import serve
+    from cellctl.store import StoreError
+
+    cfg, cfg_path = load_cell_config(args.config)
+    try:
+        return serve(cfg, cfg_path, args.data_dir, listen=args.listen, connect=args.connect)
+    except StoreError as e:
+        print(f"cellctl serve: {e}", file=sys.stderr)
+        return 1
+
+
+def _client(args: argparse.Namespace):
+    from cellctl.client import CellClient
+
+    return CellClient(args.cell, args.connect or ["tcp/127.0.0.1:7447"], timeout_s=args.reply_timeout)
+
+
+def _remote(fn):
+    """Client subcommands: a refusal, no reply or no network is one clear line and an exit status
+    (2 refused, 3 no reply/unreachable), never a traceback."""
+    def run(args: argparse.Namespace) -> int:
+        from cellctl.client import CellError, CellUnreachable, NoReply
+
+        try:
+            with _client(args) as client:
+                return fn(client, args)
+        except CellError as e:
+            print(f"cellctl: cell {args.cell} refused: {e.code}: {e.message}", file=sys.stderr)
+            return 2
+        except (NoReply, CellUnreachable, TimeoutError) as e:
+            print(f"cellctl: {e}", file=sys.stderr)
+            return 3
+    return run
+
+
+@_remote
+def _submit(client, args: argparse.Namespace) -> int:
+    req = {"scene": args.scene, "planner": args.planner, "noise": not args.no_noise,
+           "dry_run_cut": args.dry_run_cut}
+    if args.max_steps is not None:
+        req["max_steps"] = args.max_steps
+    if args.seed is not None:
+        req["seed"] = args.seed
+    if not args.wait:
+        reply = client.submit(req)
+        print(reply.job_id)
+        print(f"queued at position {reply.queue_position}; follow it with: cellctl jobs show {reply.job_id} "
+              f"--cell {args.cell}", file=sys.stderr)
+        return 0
+    bar = _ProgressBar(sys.stderr)
+    reply = client.submit(req, on_event=bar)
+    rec = client.wait(reply.job_id, args.timeout)
+    bar.finish()
+    print(f"job {rec.job_id}: {rec.state}")
+    if rec.result is not None:
+        _print_summary(rec.result, Path(rec.artifacts.dir) if rec.artifacts else Path("?"))
+    elif rec.error:
+        print(f"  error  {rec.error}")
+    return 0 if rec.state == "done" else 1
+
+
+class _ProgressBar:
+    """Fed by job events on Zenoh's thread: one redrawn line on a terminal, a line per event otherwise."""
+
+    def __init__(self, stream):
+        self.stream, self.tty, self.open = stream, stream.isatty(), False
+
+    def __call__(self, ev) -> None:
+        frac = (ev.step + 1) / ev.max_steps if ev.step is not None and ev.max_steps else 0.0
+        if ev.phase == "done":
+            frac = 1.0
+        n = int(24 * min(frac, 1.0))
+        step = f"step {ev.step + 1}/{ev.max_steps}" if ev.step is not None and ev.max_steps else ""
+        cov = f"coverage {ev.coverage_percent:.1f} %" if ev.coverage_percent is not None else ""
+        line = f"[{'#' * n:<24}] {ev.phase:<12} {step:<11} {cov}"
+        if self.tty:
+            self.stream.write("\r" + line.ljust(78))
+            self.open = True
+        else:
+            self.stream.write(f"{ev.job_id} #{ev.seq} {line.rstrip()}\n")
+        self.stream.flush()
+
+    def finish(self) -> None:
+        if self.open:
+            self.stream.write("\n")
+            self.open = False
+
+
+@_remote
+def _jobs_list(client, args: argparse.Namespace) -> int:
+    res = client.jobs(limit=args.limit, state=args.state)
+    print(f"{'job':<24} {'state':<11} {'scene':<18} {'planner':<7} {'coverage':>8}  created")
+    for j in res.jobs:
+        cov = f"{j.coverage_percent:.1f} %" if j.coverage_percent is not None else "-"
+        print(f"{j.job_id:<24} {j.state:<11} {j.scene[:18]:<18} {j.planner:<7} {cov:>8}  {j.created_at}"
+              + (f"  {j.error}" if j.error else ""))
+    print(f"({len(res.jobs)} of {res.total})", file=sys.stderr)
+    return 0
+
+
+@_remote
+def _jobs_show(client, args: argparse.Namespace) -> int:
+    print(client.job(args.job_id).model_dump_json(indent=2))
+    return 0
+
+
+@_remote
+def _jobs_cancel(client, args: argparse.Namespace) -> int:
+    reply = client.cancel(args.job_id, args.reason)
+    print(f"job {reply.job_id}: {reply.state}")
+    return 0
+
+
+@_remote
+def _status(client, args: argparse.Namespace) -> int:
+    st = client.status()
+    for k, v in st.model_dump().items():
+        print(f"  {k:<15} {v}")
+    return 0
+
+
 def _print_summary(r, run_dir: Path) -> None:
     rows = [
         ("scene", r.scene), ("planner", r.planner),
@@ -41,7 +164,7 @@ def _print_summary(r, run_dir: Path) -> None:
         ("terminated by", r.terminated_by),
     ]
     if r.cut:
-        c = r.cut
+        c = r.cut if isinstance(r.cut, dict) else r.cut.model_dump()  # ScanResult or api.ResultSummary
         rows.append(("cut path", f"{c['feasible_branches']}/{c['branches']} branches feasible, "
                                  f"{c['feasible_poses']}/{c['poses']} poses, {c['length_m']:.3f} m"
                                  + (f"; infeasible: {c['infeasible']}" if c["infeasible"] else "")
@@ -50,7 +173,7 @@ def _print_summary(r, run_dir: Path) -> None:
             d = c["dry_run"]
             rows.append(("dry-run cut", f"{d['motions']} motions, tip error max {d['tip_error_max_mm']} mm "
                                         f"(median {d['tip_error_median_mm']}), off the path max "
-                                        f"{d['path_error_max_mm']} mm, {len(d['contacts'])} contacts"))
+                                        f"{d['path_error_max_mm']} mm, {_count(d['contacts'])} contacts"))
     if r.error:
         rows.append(("error", r.error))
     rows.append(("run folder", str(run_dir)))
@@ -58,6 +181,18 @@ def _print_summary(r, run_dir: Path) -> None:
     print()
     for k, v in rows:
         print(f"  {k:<{w}}  {v}")
+
+
+def _count(x) -> int:
+    return x if isinstance(x, int) else len(x)
+
+
+def _client_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--cell", required=True, help="cell id (cell_id in the cell's config)")
+    p.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
+                   help="Zenoh endpoint of the cell or its router (default: tcp/127.0.0.1:7447; repeatable)")
+    p.add_argument("--reply-timeout", type=float, default=5.0, metavar="S",
+                   help="seconds to wait for a reply (default: 5); no reply = cell down or access denied")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -90,6 +225,52 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--report", default=None, metavar="BENCH_JSON",
                    help="only rewrite bench.md and the plots next to this bench.json, no scans")
     b.set_defaults(func=_bench)
+
+    sv = sub.add_parser("serve", help="run the cell-controller service: the job API over Zenoh (docs/API.md)",
+                        description="Runs until SIGINT/SIGTERM; the running job is then interrupted (partial "
+                                    "result kept) and the Zenoh session closed.")
+    sv.add_argument("--config", default=None, help="cell config YAML (default: configs/cell.sim.yaml)")
+    sv.add_argument("--data-dir", default=None, help="jobs.sqlite and job folders (default: service.data_dir)")
+    sv.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
+                    help="override service.listen (repeatable), e.g. tcp/127.0.0.1:7447")
+    sv.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
+                    help="override service.connect (repeatable)")
+    sv.set_defaults(func=_serve)
+
+    su = sub.add_parser("submit", help="submit a job to a running cell")
+    su_kind = su.add_subparsers(dest="kind", required=True)
+    sd = su_kind.add_parser("scan-drawing", help="scan the painted line and plan its cutting path")
+    _client_args(sd)
+    sd.add_argument("--scene", required=True, help="twin: built-in scene name or scene .yaml path on the cell")
+    sd.add_argument("--planner", default="gnbv", help="gnbv (default), cnbv, enpv or global")
+    sd.add_argument("--max-steps", type=int, default=None)
+    sd.add_argument("--seed", type=int, default=None)
+    sd.add_argument("--no-noise", action="store_true")
+    sd.add_argument("--dry-run-cut", action="store_true")
+    sd.add_argument("--wait", action="store_true", help="follow the job (progress on stderr) and print its result")
+    sd.add_argument("--timeout", type=float, default=3600.0, metavar="S", help="with --wait: give up after S s")
+    sd.set_defaults(func=_submit)
+
+    j = sub.add_parser("jobs", help="list, show or cancel a cell's jobs")
+    jsub = j.add_subparsers(dest="jobs_cmd", required=True)
+    jl = jsub.add_parser("list", help="newest first")
+    _client_args(jl)
+    jl.add_argument("--limit", type=int, default=20)
+    jl.add_argument("--state", default=None)
+    jl.set_defaults(func=_jobs_list)
+    js = jsub.add_parser("show", help="the job record as JSON")
+    js.add_argument("job_id")
+    _client_args(js)
+    js.set_defaults(func=_jobs_show)
+    jc = jsub.add_parser("cancel", help="cancel a queued or running job")
+    jc.add_argument("job_id")
+    jc.add_argument("--reason", default=None)
+    _client_args(jc)
+    jc.set_defaults(func=_jobs_cancel)
+
+    st = sub.add_parser("status", help="a cell's health: arm, camera, queue, running job")
+    _client_args(st)
+    st.set_defaults(func=_status)
     return p
 
 

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from configs import CONFIG_DIR
 from planners.config import load_yaml_model
@@ -23,9 +23,46 @@ class MotionConfig(BaseModel):
     collision: CollisionConfig = Field(default_factory=CollisionConfig)
     self_filter_pad_m: float = Field(0.02, ge=0, le=0.2, description="drop returns this close to the arm's "
                                      "own collision hulls (0: keep them)")
+    via_candidates: int = Field(8, ge=0, le=1000, description="best-ranked views that may be reached via waypoints")
+    motion_budget_s: float = Field(5.0, gt=0, le=120, description="motion planning time per target before it is "
+                                   "given up")
     retract_m: float = Field(0.10, ge=0, le=0.5, description="back-off along the optical axis for via waypoints")
     park_q: tuple[float, float, float, float, float, float, float] | None = Field(
         None, description="joints of a clear pose above the cell, the last via (default: the twin's home)")
+
+
+# a Zenoh locator: protocol/address[:port][#params]; no spaces (a typo here is a silent unreachable cell)
+ENDPOINT_PATTERN = r"^(tcp|udp|tls|quic|ws|unixsock-stream)/[^\s]{1,250}$"
+Endpoint = Annotated[str, Field(pattern=ENDPOINT_PATTERN)]
+
+
+class ServiceConfig(BaseModel):
+    """`cellctl serve`: where jobs are kept and how the cell is reached over Zenoh."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    data_dir: str = Field("runs/service", description="jobs.sqlite and jobs/<job_id>/ (relative to the working "
+                          "directory, like runs_dir)")
+    zenoh_mode: Literal["peer", "client"] = Field("peer", description="peer: listen on `listen`; client: connect "
+                                                  "to a router at `connect`")
+    listen: list[Endpoint] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"], max_length=8)
+    connect: list[Endpoint] = Field(default_factory=list, max_length=8)
+    zenoh_config_file: str | None = Field(None, description="optional JSON5 Zenoh config (credentials, TLS) "
+                                          "that the fields above are applied on top of; relative to this file")
+    queue_max: int = Field(8, ge=1, le=1000, description="jobs waiting (the running one not counted)")
+    job_timeout_s: float = Field(900.0, gt=0, le=86400, description="a job running longer is cancelled and failed")
+    shutdown_grace_s: float = Field(30.0, gt=0, le=600, description="on SIGTERM, wait this long for the running "
+                                    "job to stop")
+    rerun_connect: str | None = Field(None, max_length=256, description="live viewer for jobs' recordings "
+                                      "(overrides the top-level rerun_connect)")
+
+    @model_validator(mode="after")
+    def _client_needs_a_router(self) -> "ServiceConfig":
+        if self.zenoh_mode == "client" and not self.connect:
+            raise ValueError("zenoh_mode client needs at least one `connect` endpoint (the router)")
+        if self.zenoh_mode == "peer" and not (self.listen or self.connect):
+            raise ValueError("zenoh_mode peer needs a `listen` or `connect` endpoint")
+        return self
 
 
 class CellConfig(BaseModel):
@@ -38,6 +75,7 @@ class CellConfig(BaseModel):
     planners_config: str = Field("planners.yaml", description="path, relative to this file")
     runs_dir: str = "runs"
     rerun_connect: str | None = Field(None, description="optional live viewer address, e.g. rerun+http://127.0.0.1:9876/proxy")
+    service: ServiceConfig = Field(default_factory=ServiceConfig)
 
 
 DEFAULT_CELL_CONFIG = CONFIG_DIR / "cell.sim.yaml"

@@ -6,6 +6,7 @@ until the planner says stop. Planning, capture, motion planning and motion are t
 from __future__ import annotations
 
 import importlib
+import threading
 import time
 import traceback
 from dataclasses import asdict, dataclass, field
@@ -105,8 +106,9 @@ class ScanResult:
 class ScanJob:
     def __init__(self, arm: Arm, camera: RGBDCamera, planner_name: str, pcfg: PlannersConfig,
                  mcfg: MotionConfig, recorder=None, progress: Callable[[StepRecord], None] | None = None,
-                 park_q: np.ndarray | None = None):
+                 park_q: np.ndarray | None = None, cancel: threading.Event | None = None):
         self.arm, self.camera, self.pcfg, self.mcfg = arm, camera, pcfg, mcfg
+        self.cancel = cancel  # set by another thread: the scan ends after the current step, the arm at once
         self.planner = make_planner(planner_name, pcfg)
         m = arm.model
         self.kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
@@ -116,6 +118,7 @@ class ScanJob:
         self.motion = ViewMotionPlanner(self.kin, m.max_velocity, m.max_acceleration, m.max_jerk, self.checker,
                                         speed_factor=mcfg.speed_factor, ik_margin_rad=mcfg.ik_margin_rad,
                                         ik_seeds=mcfg.ik_seeds, retract_m=mcfg.retract_m,
+                                        via_candidates=mcfg.via_candidates, budget_s=mcfg.motion_budget_s,
                                         park_q=None if park is None else np.asarray(park, dtype=np.float64))
         self.last_via = ""
         self._scene_stale = True  # the collision scene lags the grid until the next move
@@ -196,10 +199,27 @@ class ScanJob:
         self.self_filtered += int(on.sum())
         return cloud.select(~on) if on.any() else cloud
 
+    # --- cancellation ---------------------------------------------------------------------------
+    def cancelled(self) -> bool:
+        return self.cancel is not None and self.cancel.is_set()
+
+    def _stop_arm_on_cancel(self, done: threading.Event) -> None:
+        """A move takes seconds: an operator's cancel stops the arm mid-way, not at the next view."""
+        while not done.wait(0.05):
+            if self.cancelled():
+                self.arm.stop()
+                return
+
     # --- the loop -------------------------------------------------------------------------------
     def run(self, scene_name: str, initial_candidates: np.ndarray, gt_points: np.ndarray) -> ScanResult:
         res = ScanResult(scene=scene_name, planner=self.planner.name)
+        done = threading.Event()
+        if self.cancel is not None:
+            threading.Thread(target=self._stop_arm_on_cancel, args=(done,), name="scan-cancel", daemon=True).start()
         try:
+            if self.cancelled():
+                res.terminated_by = "cancelled"
+                return res
             _, plan_s, motion_s = self.move_to_initial(initial_candidates)
             res.motion_contacts += len(self.last_contacts)
             res.motion_planning_s += plan_s
@@ -207,11 +227,15 @@ class ScanJob:
             initial_pose = self.arm.camera_pose()
             self._explore(res, initial_pose, gt_points)
         except Exception as e:  # noqa: BLE001 - any failure ends the scan, never loses what was recorded
+            if self.cancelled():  # the stopped arm's TrajectoryError is the cancel itself, not a fault
+                res.terminated_by = "cancelled"
+                return res
             res.error = f"{type(e).__name__}: {e}"
             if not isinstance(e, (ScanError, DeviceError, Unreachable, ValueError)):
                 res.error += "\n" + traceback.format_exc(limit=6)
             res.terminated_by = res.terminated_by or "error"
         finally:
+            done.set()
             cov = coverage(self.drawing.xyz, gt_points, self.pcfg.coverage_voxel_m)
             res.coverage_hit, res.coverage_total, res.coverage_percent = cov.hit, cov.total, round(cov.percent, 2)
             res.steps = len(res.records)
@@ -222,6 +246,9 @@ class ScanJob:
     def _explore(self, res: ScanResult, initial_pose: np.ndarray, gt_points: np.ndarray | None) -> None:
         last_plan: ViewPlan | None = None
         for k in range(self.pcfg.max_steps):
+            if self.cancelled():
+                res.terminated_by = "cancelled"
+                return
             t0 = time.perf_counter()
             frame = self.camera.capture()
             T = self.arm.camera_pose()
@@ -249,7 +276,7 @@ class ScanJob:
                 self.recorder.log_view(k, T, self.K, self.image_size, frame.color, frame.depth, cloud.xyz, cloud.rgb)
                 self.recorder.log_plan(k, plan.frontier, self.grid.voxel, plan.poses, plan.quality, plan.target,
                                        self.drawing.xyz)
-            if not plan.stop:
+            if not plan.stop and not self.cancelled():  # a cancel during planning: no new move
                 plan = self._go(plan, state, rec)
             last_plan = plan
             res.planning_s += rec.planning_s

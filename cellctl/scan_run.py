@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import sys
+import threading
 from dataclasses import asdict
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -42,14 +44,23 @@ def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, twin: Twin, run_dir: Path, r
 
 def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, seed: int | None = None,
                      noise: bool = True, out: str | None = None, max_steps: int | None = None,
-                     progress: bool = True, cut: bool = True, dry_run_cut: bool = False) -> tuple[ScanResult, Path]:
+                     progress: bool = True, cut: bool = True, dry_run_cut: bool = False,
+                     run_dir: Path | None = None, cancel: threading.Event | None = None,
+                     on_step: Callable[[StepRecord], None] | None = None,
+                     on_phase: Callable[[str], None] | None = None) -> tuple[ScanResult, Path]:
+    """``run_dir``: write into this folder (the service's per-job folder) instead of a new stamped one
+    under ``out``. ``cancel``: set from another thread to end the scan early ("cancelled", partial
+    result kept, no cut). ``on_step`` gets every StepRecord, ``on_phase`` "scanning" / "planning-cut"."""
     pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
     if max_steps is not None:
         pcfg = pcfg.model_copy(update={"max_steps": max_steps})
     scene = load_scene(scene_ref)
     cam_cfg = cfg.twin.camera.model_copy(update={"noise": noise, **({"seed": seed} if seed is not None else {})})
     twin_cfg = cfg.twin.model_copy(update={"camera": cam_cfg})
-    run_dir = new_run_dir(out or cfg.runs_dir, scene.name, planner)
+    if run_dir is None:
+        run_dir = new_run_dir(out or cfg.runs_dir, scene.name, planner)
+    else:
+        run_dir.mkdir(parents=True, exist_ok=True)
     recorder = ScanRecorder(run_dir / "scan.rrd", f"{scene.name}-{planner}", cfg.rerun_connect)
     result = ScanResult(scene=scene.name, planner=planner)
     job = None
@@ -59,17 +70,25 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
             print(f"step {rec.step}: {rec.points} pts, drawing {rec.drawing_points}, frontier {rec.frontier_cells}, "
                   f"{rec.candidates} candidates, planning {rec.planning_s:.3f} s, motion {rec.motion_s:.2f} s",
                   file=sys.stderr, flush=True)
+        if on_step:
+            on_step(rec)
 
     try:  # whatever happens, the run folder ends with a result.json and a closed recording
         recorder.log_scene(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points)
         with Twin(scene, twin_cfg) as twin:
-            job = ScanJob(twin.arm, twin.camera, planner, pcfg, cfg.motion, recorder, report, park_q=twin_cfg.home_q)
+            job = ScanJob(twin.arm, twin.camera, planner, pcfg, cfg.motion, recorder, report, park_q=twin_cfg.home_q,
+                          cancel=cancel)
             twin.arm.reset(twin_cfg.home_q)
+            if on_phase:
+                on_phase("scanning")
             result = job.run(scene.name, scene.initial_view_candidates, scene.gt_points)
-            if cut and result.error is None and len(job.drawing):
+            if cut and result.error is None and not job.cancelled() and len(job.drawing):
+                if on_phase:
+                    on_phase("planning-cut")
                 _cut_phase(job, pcfg, cfg, twin, run_dir, recorder, result, dry_run_cut, progress)
-        write_ply(run_dir / "drawing.ply", job.drawing)
-        write_ply(run_dir / "surface.ply", job.surface)
+        for name, cloud in (("drawing.ply", job.drawing), ("surface.ply", job.surface)):
+            if len(cloud) or not job.cancelled():  # a scan cancelled before its first view has no cloud
+                write_ply(run_dir / name, cloud)
         coverage_figure(run_dir / "coverage.png", scene.gt_points, job.drawing.xyz, np.array(result.viewpoints),
                         pcfg.coverage_voxel_m, job.surface.xyz,
                         f"{scene.name} / {planner}: {result.steps} views, coverage {result.coverage_percent:.1f} %")

@@ -13,7 +13,6 @@ from planners import nbv
 from planners.base import ScanState, ViewPlan
 from planners.config import PlannersConfig
 from planners.grid import frontier_clusters
-from planners.growth import GrowthWatch
 from planners.views import look_at_rotations, poses_from
 
 
@@ -37,7 +36,6 @@ class ConstrainedNBV:
         self._given_up: list[np.ndarray] = []  # targets that proved unreachable or without gain
         self._targets: list[np.ndarray] = []  # the target of every plan handed out
         self._first_gain: float | None = None
-        self._growth = GrowthWatch(self.cfg.min_view_growth_voxels)
 
     def reject(self, plan: ViewPlan) -> None:
         if plan.target is not None:
@@ -61,9 +59,6 @@ class ConstrainedNBV:
     def next_view(self, state: ScanState) -> ViewPlan:
         cfg, grid = self.cfg, state.grid
         t0 = time.perf_counter()
-        fruitless = self._growth.fruitless(state.step, grid)
-        if fruitless is not None:
-            self._given_up.append(fruitless)
         labels, n = frontier_clusters(grid.frontier(cfg.frontier_reach_voxels), cfg.min_frontier_cluster)
         ijk = np.argwhere(labels > 0)
         frontier = grid.centers(ijk)
@@ -112,6 +107,5 @@ class ConstrainedNBV:
         target = np.tile(targets, (len(self._turns), 1))[rank[0]]
         if not stop:
             self._targets.append(target)
-            self._growth.planned(state.step, target, grid)
         return ViewPlan(poses_from(E[rank], R[rank]), q[rank], gain[rank], bool(stop), "quality" if stop else "",
                         target=target, frontier=frontier, timings=timings)

@@ -94,7 +94,8 @@ class NBVConfig(_Strict):
     revisit_angle_deg: float = Field(25.0, ge=0, le=90,
                                      description="no candidate within this angle (seen from the target) of a past view")
     min_view_growth_voxels: int = Field(3, ge=0, le=10_000,
-                                        description="a view adding fewer drawing voxels gives its target up (0: never)")
+                                        description="G-NBV: a view adding fewer drawing voxels sends its target to the cone-free "
+                                        "tier, a second one gives it up (0: never)")
     max_target_visits: int = Field(3, ge=1, le=20, description="give up a frontier cluster after this many views at it")
     ik_candidates: int = Field(40, ge=1, le=10_000, description="ranked candidates the runner tries to reach")
 

@@ -49,7 +49,7 @@ class ViewMotionPlanner:
     def __init__(self, kin: Kinematics, max_velocity, max_acceleration, max_jerk, checker: CollisionChecker | None,
                  *, speed_factor: float = 0.5, ik_margin_rad: float = 0.05, ik_seeds: int = 6,
                  retract_m: float = 0.10, park_q: np.ndarray | None = None, max_joint_step_rad: float = math.radians(1.0),
-                 max_tcp_step_m: float = 0.01):
+                 max_tcp_step_m: float = 0.01, via_candidates: int = 8, budget_s: float = 5.0):
         if not (math.isfinite(retract_m) and 0 <= retract_m <= 0.5):
             raise ValueError(f"retract_m must be in [0, 0.5] m, got {retract_m!r}")
         self.kin, self.checker = kin, checker
@@ -58,6 +58,9 @@ class ViewMotionPlanner:
         self.retract_m = retract_m
         self.park_q = None if park_q is None else kin._vec(park_q, "park_q")
         self.step_rad, self.step_m = max_joint_step_rad, max_tcp_step_m
+        # Waypoint routes cost several IK solves and path checks each: only the best-ranked candidates
+        # get them, and a target whose views all turn out blocked is given up after budget_s.
+        self.via_candidates, self.budget_s = int(via_candidates), float(budget_s)
         self.last_collision: Collision | None = None
 
     # ------------------------------------------------------------------ pieces
@@ -140,14 +143,18 @@ class ViewMotionPlanner:
         memo: dict = {}
         t_ik = t_check = 0.0
         first_hit: str | None = None
-        for i in np.flatnonzero(in_reach):
+        t_start = time.perf_counter()
+        for n_tried, i in enumerate(np.flatnonzero(in_reach)):
+            if time.perf_counter() - t_start > self.budget_s:
+                rejected["not tried (time budget)"] = int(in_reach.sum()) - n_tried
+                break
             t0 = time.perf_counter()
             q_goal = self._ik(P[i], q_now)
             t_ik += time.perf_counter() - t0
             if q_goal is None:
                 rejected["no collision-free IK"] += 1
                 continue
-            for route in self._routes():
+            for route in self._routes()[: None if n_tried < self.via_candidates else 1]:
                 t0 = time.perf_counter()
                 wps = self._waypoints(route, q_now, q_goal, P[i], memo)
                 t_ik += time.perf_counter() - t0

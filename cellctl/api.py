@@ -1,0 +1,341 @@
+"""The job API's contract: key expressions and JSON messages (pydantic v2), shared by the service and
+its clients. Kept free of numpy/pybullet imports so a tablet app can use it with pydantic alone.
+
+Every message carries ``schema_version``; unknown fields are refused (``extra="forbid"``) and types are
+strict (``"5"`` is not 5), so a client bug shows up as an error reply, not as a silently different job.
+docs/API.md is generated from this module by ``python -m cellctl.apidoc``."""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated, Any, Literal, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+SCHEMA_VERSION = 1
+MAX_PAYLOAD_BYTES = 64 * 1024  # a request is a few hundred bytes; anything near this is a bug or an attack
+LIST_LIMIT_MAX = 200
+
+CELL_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+# "<UTC time>-<random>": sorts by creation, is one key-expression chunk, cannot collide with "submit"
+JOB_ID_PATTERN = r"^[0-9]{8}T[0-9]{6}Z-[0-9a-f]{6}$"
+# a built-in scene name, or a scene .yaml path on the cell controller (twin only)
+SCENE_PATTERN = r"^([a-z0-9_]{1,64}|[^\x00-\x1f\x7f]{1,500}\.ya?ml)$"
+
+PLANNER_NAMES = ("gnbv", "cnbv", "enpv", "global")  # cellctl.scan.PLANNERS (a test keeps them equal)
+
+JobId = Annotated[str, Field(pattern=JOB_ID_PATTERN, description="e.g. 20250314T101500Z-3f9a1c")]
+CellId = Annotated[str, Field(pattern=CELL_ID_PATTERN)]
+Timestamp = Annotated[str, Field(max_length=40, description="ISO 8601, UTC, milliseconds")]
+ShortText = Annotated[str, Field(max_length=2000)]
+
+JobState = Literal["queued", "running", "cancelling", "done", "failed", "cancelled", "interrupted"]
+TERMINAL_STATES = frozenset({"done", "failed", "cancelled", "interrupted"})
+Phase = Literal["queued", "scanning", "planning-cut", "done", "failed", "cancelled", "interrupted"]
+ErrorCode = Literal["bad_json", "invalid_request", "payload_too_large", "unsupported_schema_version", "queue_full",
+                    "not_found", "not_cancellable", "shutting_down", "internal_error"]
+
+ERROR_CODES: dict[str, str] = {
+    "bad_json": "the payload is empty, not UTF-8, or not JSON",
+    "invalid_request": "JSON, but not a valid message: missing or unknown field, wrong type, value out of range, "
+                       "unknown planner or scene, wildcard or unknown key",
+    "payload_too_large": f"the payload is over {MAX_PAYLOAD_BYTES} bytes",
+    "unsupported_schema_version": f"schema_version is not {SCHEMA_VERSION}",
+    "queue_full": "the job queue is at its configured length (service.queue_max); retry later",
+    "not_found": "no job with this id",
+    "not_cancellable": "the job already ended (done, failed, cancelled or interrupted)",
+    "shutting_down": "the service is stopping and takes no new jobs",
+    "internal_error": "a bug in the service; the request was not carried out, the service keeps serving",
+}
+
+
+# --- key expressions ------------------------------------------------------------------------------
+class Keys:
+    """The key expressions of one cell."""
+
+    def __init__(self, cell_id: str):
+        self.cell_id = cell_id
+        self.root = f"cell/{cell_id}"
+        self.jobs = f"{self.root}/jobs"
+        self.jobs_tree = f"{self.root}/jobs/**"  # the one queryable that serves every jobs key
+        self.submit = f"{self.jobs}/submit"
+        self.all_events = f"{self.jobs}/*/events"
+        self.status = f"{self.root}/status"
+        self.alive = f"{self.root}/alive"
+
+    def job(self, job_id: str) -> str:
+        return f"{self.jobs}/{job_id}"
+
+    def cancel(self, job_id: str) -> str:
+        return f"{self.jobs}/{job_id}/cancel"
+
+    def events(self, job_id: str) -> str:
+        return f"{self.jobs}/{job_id}/events"
+
+
+# --- messages -------------------------------------------------------------------------------------
+class ApiModel(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
+
+
+class ScanDrawingRequest(ApiModel):
+    """Submit on ``cell/<cell_id>/jobs/submit``: scan the painted line and plan its cutting path."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    kind: Literal["scan_drawing"] = Field("scan_drawing", description="the only job kind so far")
+    scene: str = Field(pattern=SCENE_PATTERN, max_length=500,
+                       description="twin only: a built-in scene name (smooth_cylinder, ...) or the path of a "
+                                   "scene .yaml on the cell controller")
+    planner: Literal["gnbv", "cnbv", "enpv", "global"] = Field("gnbv", description="next-view planner")
+    max_steps: int | None = Field(None, ge=1, le=200, description="views at most, initial one included "
+                                  "(default: planners.yaml)")
+    seed: int | None = Field(None, ge=0, le=2**31 - 1, description="twin sensor noise seed (default: the config's)")
+    noise: bool = Field(True, description="twin: simulate the D435 depth noise")
+    dry_run_cut: bool = Field(False, description="twin: run the cutting path with the torch off and measure the tip")
+    requested_by: str | None = Field(None, pattern=r"^[\w .@-]{1,64}$", description="operator or tablet name, "
+                                     "kept in the job record")
+
+
+class ListJobsRequest(ApiModel):
+    """Optional payload of a query on ``cell/<cell_id>/jobs`` (no payload: the defaults)."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    limit: int = Field(20, ge=1, le=LIST_LIMIT_MAX)
+    state: JobState | None = Field(None, description="only jobs in this state")
+
+
+class CancelRequest(ApiModel):
+    """Optional payload of a query on ``cell/<cell_id>/jobs/<job_id>/cancel``."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    reason: str | None = Field(None, max_length=200, description="kept in the job's transitions")
+
+
+class ErrorDetail(ApiModel):
+    loc: str = Field(max_length=200, description="the field, dotted (e.g. 'max_steps')")
+    msg: str = Field(max_length=500)
+
+
+class ErrorReply(ApiModel):
+    """An error reply (Zenoh ``reply_err``) to any query."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    code: ErrorCode
+    message: ShortText
+    details: list[ErrorDetail] = Field(default_factory=list, max_length=20)
+
+
+class SubmitReply(ApiModel):
+    schema_version: Literal[1] = SCHEMA_VERSION
+    job_id: JobId
+    state: Literal["queued"] = "queued"
+    queue_position: int = Field(ge=1, description="1: next to run")
+
+
+class Transition(ApiModel):
+    state: JobState
+    at: Timestamp
+    note: str | None = Field(None, max_length=500)
+
+
+class Progress(ApiModel):
+    """The job's last event, kept in the record so a late client can catch up."""
+
+    phase: Phase
+    seq: int = Field(ge=0, description="of the last event published")
+    step: int | None = Field(None, ge=0)
+    max_steps: int | None = Field(None, ge=1)
+    coverage_percent: float | None = Field(None, ge=0, le=100)
+    drawing_points: int | None = Field(None, ge=0)
+    at: Timestamp
+
+
+class DryRunSummary(ApiModel):
+    motions: int = Field(ge=0)
+    contacts: int = Field(ge=0, description="robot-scene contacts the twin saw")
+    tip_error_max_mm: float | None = None
+    tip_error_median_mm: float | None = None
+    path_error_max_mm: float | None = None
+    path_error_median_mm: float | None = None
+
+
+class CutPathSummary(ApiModel):
+    branches: int = Field(ge=0)
+    feasible_branches: int = Field(ge=0)
+    poses: int = Field(ge=0)
+    feasible_poses: int = Field(ge=0)
+    length_m: float = Field(ge=0)
+    planning_s: float = Field(ge=0)
+    infeasible: dict[str, int] = Field(default_factory=dict, description="pose count per reason")
+    error: str | None = Field(None, max_length=2000)
+    dry_run: DryRunSummary | None = None
+
+
+class ResultSummary(ApiModel):
+    """What the scan found; the full result is result.json in the job's artifacts folder."""
+
+    scene: str = Field(max_length=500)
+    planner: str = Field(max_length=32)
+    steps: int = Field(ge=0, description="views captured, initial one included")
+    terminated_by: str = Field(max_length=64, description="quality, frontier, max_steps, unreachable, cancelled, "
+                                                          "error, ...")
+    coverage_percent: float = Field(ge=0, le=100, description="of the painted line (twin: against ground truth)")
+    coverage_hit: int = Field(ge=0)
+    coverage_total: int = Field(ge=0)
+    planning_s: float = Field(ge=0)
+    step_s: float = Field(ge=0, description="planning time per viewpoint")
+    capture_s: float = Field(ge=0)
+    motion_planning_s: float = Field(ge=0)
+    motion_s: float = Field(ge=0)
+    displacement_m: float = Field(ge=0)
+    motion_contacts: int = Field(0, ge=0)
+    cut: CutPathSummary | None = Field(None, description="absent when no cut was planned (cancelled, error, "
+                                                         "no drawing)")
+    error: str | None = Field(None, max_length=2000)
+
+
+class Artifacts(ApiModel):
+    dir: str = Field(max_length=1000, description="on the cell controller: <data_dir>/jobs/<job_id>")
+    files: list[str] = Field(default_factory=list, max_length=100)
+
+
+class JobRecord(ApiModel):
+    """Reply to ``cell/<cell_id>/jobs/<job_id>``."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    job_id: JobId
+    cell_id: CellId
+    request: ScanDrawingRequest
+    state: JobState
+    created_at: Timestamp
+    updated_at: Timestamp
+    transitions: list[Transition] = Field(max_length=50)
+    progress: Progress | None = None
+    result: ResultSummary | None = None
+    error: str | None = Field(None, max_length=2000)
+    artifacts: Artifacts | None = None
+
+
+class JobBrief(ApiModel):
+    job_id: JobId
+    state: JobState
+    created_at: Timestamp
+    updated_at: Timestamp
+    scene: str = Field(max_length=500)
+    planner: str = Field(max_length=32)
+    coverage_percent: float | None = Field(None, ge=0, le=100)
+    error: str | None = Field(None, max_length=200, description="first line, shortened")
+
+
+class JobList(ApiModel):
+    """Reply to ``cell/<cell_id>/jobs``: newest first."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    cell_id: CellId
+    jobs: list[JobBrief] = Field(max_length=LIST_LIMIT_MAX)
+    total: int = Field(ge=0, description="jobs in the store that match (the list is cut at `limit`)")
+    limit: int = Field(ge=1, le=LIST_LIMIT_MAX)
+
+
+class CancelReply(ApiModel):
+    schema_version: Literal[1] = SCHEMA_VERSION
+    job_id: JobId
+    state: JobState = Field(description="cancelled (was queued) or cancelling (was running: the scan stops at "
+                                        "once, the final state follows as an event)")
+
+
+class CellStatus(ApiModel):
+    """Reply to ``cell/<cell_id>/status``."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    cell_id: CellId
+    version: str = Field(max_length=64, description="scrapcell package version")
+    mode: Literal["sim"]
+    arm_ready: bool
+    camera_ready: bool
+    devices: str = Field(max_length=200, description="what drives the arm and the camera")
+    accepting_jobs: bool
+    queue_length: int = Field(ge=0, description="jobs waiting, the running one not counted")
+    queue_max: int = Field(ge=1)
+    running_job: JobId | None = None
+    jobs_total: int = Field(ge=0, description="jobs in the store")
+    started_at: Timestamp
+    uptime_s: float = Field(ge=0)
+
+
+class JobEvent(ApiModel):
+    """Published on ``cell/<cell_id>/jobs/<job_id>/events``: one per phase change and per scan step."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    job_id: JobId
+    seq: int = Field(ge=0, description="0, 1, 2, ... per job, no gaps: a gap means an event was lost")
+    phase: Phase
+    state: JobState
+    step: int | None = Field(None, ge=0, description="exploration step (0: the initial view)")
+    max_steps: int | None = Field(None, ge=1)
+    coverage_percent: float | None = Field(None, ge=0, le=100, description="so far, when known (twin: ground "
+                                                                           "truth)")
+    drawing_points: int | None = Field(None, ge=0)
+    time: Timestamp
+    message: str | None = Field(None, max_length=2000)
+
+
+# --- parsing --------------------------------------------------------------------------------------
+class ApiError(Exception):
+    """A request the service answers with an error reply."""
+
+    def __init__(self, code: str, message: str, details: list[ErrorDetail] | None = None):
+        super().__init__(f"{code}: {message}")
+        self.code, self.message, self.details = code, message, details or []
+
+    def reply(self) -> ErrorReply:
+        return ErrorReply(code=self.code, message=self.message[:2000], details=self.details[:20])
+
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def parse_payload(raw: bytes | None, model: type[M], *, required: bool = True) -> M:
+    """bytes -> model, or ApiError with a stable code: bad_json, payload_too_large,
+    unsupported_schema_version, invalid_request."""
+    if not raw:
+        if required:
+            raise ApiError("bad_json", "empty payload: expected a JSON object")
+        return model()
+    if len(raw) > MAX_PAYLOAD_BYTES:
+        raise ApiError("payload_too_large", f"payload is {len(raw)} bytes; at most {MAX_PAYLOAD_BYTES} are accepted")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ApiError("bad_json", f"payload is not UTF-8 (invalid byte at offset {e.start})") from None
+    try:
+        obj = json.loads(text, parse_constant=_no_constant)
+    except json.JSONDecodeError as e:
+        raise ApiError("bad_json", f"payload is not JSON: {e.msg} at line {e.lineno} column {e.colno}") from None
+    except (ValueError, RecursionError) as e:
+        raise ApiError("bad_json", f"payload is not JSON: {e}"[:300]) from None
+    if not isinstance(obj, dict):
+        raise ApiError("invalid_request", f"expected a JSON object, got {type(obj).__name__}")
+    version = obj.get("schema_version", SCHEMA_VERSION)
+    if version != SCHEMA_VERSION or isinstance(version, bool):
+        raise ApiError("unsupported_schema_version",
+                       f"schema_version {json.dumps(version)[:40]} is not supported; this cell speaks {SCHEMA_VERSION}")
+    try:
+        return model.model_validate_json(text)
+    except ValidationError as e:
+        raise invalid(e) from None
+
+
+def invalid(e: ValidationError, prefix: str = "invalid request") -> ApiError:
+    details = [ErrorDetail(loc=".".join(str(p) for p in err["loc"])[:200] or "(payload)", msg=err["msg"][:500])
+               for err in e.errors(include_url=False, include_input=False)[:20]]
+    text = "; ".join(f"{d.loc}: {d.msg}" for d in details)
+    return ApiError("invalid_request", f"{prefix}: {text}"[:2000], details)
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not valid JSON")
+
+
+def dumps(model: BaseModel) -> bytes:
+    return model.model_dump_json().encode()

@@ -1,0 +1,267 @@
+"""docs/API.md, generated from the pydantic models of cellctl.api so the document cannot drift from
+the code (a test compares the committed file with this output).
+
+    python -m cellctl.apidoc > docs/API.md
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from pydantic import BaseModel
+
+from cellctl import api
+from cellctl.api import (ERROR_CODES, MAX_PAYLOAD_BYTES, SCHEMA_VERSION, Artifacts, CancelReply, CancelRequest,
+                         CellStatus, CutPathSummary, DryRunSummary, ErrorDetail, ErrorReply, JobBrief, JobEvent,
+                         JobList, JobRecord, ListJobsRequest, Progress, ResultSummary, ScanDrawingRequest,
+                         SubmitReply, Transition)
+
+J = "20250314T101500Z-3f9a1c"  # example job id
+T0 = "2025-03-14T10:15:00.120Z"
+
+
+def examples() -> dict[str, BaseModel]:
+    """Fixed example messages (no clock, no randomness: the document must be reproducible)."""
+    req = ScanDrawingRequest(scene="smooth_cylinder", planner="gnbv", max_steps=12, noise=True,
+                             requested_by="tablet-2")
+    result = ResultSummary(scene="smooth_cylinder", planner="gnbv", steps=5, terminated_by="quality",
+                           coverage_percent=97.9, coverage_hit=238, coverage_total=243, planning_s=5.61, step_s=1.4,
+                           capture_s=1.3, motion_planning_s=0.42, motion_s=9.8, displacement_m=0.61,
+                           cut=CutPathSummary(branches=1, feasible_branches=1, poses=126, feasible_poses=126,
+                                              length_m=0.623, planning_s=0.64))
+    return {
+        "request": req,
+        "submit_reply": SubmitReply(job_id=J, queue_position=1),
+        "error_invalid": ErrorReply(code="invalid_request", message="invalid request: planner: Input should be "
+                                    "'gnbv', 'cnbv', 'enpv' or 'global'",
+                                    details=[ErrorDetail(loc="planner", msg="Input should be 'gnbv', 'cnbv', 'enpv' "
+                                                                            "or 'global'")]),
+        "error_queue_full": ErrorReply(code="queue_full", message="8 jobs are waiting (service.queue_max = 8); "
+                                                                  "submit again when one has started"),
+        "record": JobRecord(
+            job_id=J, cell_id="sim-1", request=req, state="done", created_at=T0, updated_at="2025-03-14T10:15:31.906Z",
+            transitions=[Transition(state="queued", at=T0), Transition(state="running", at="2025-03-14T10:15:00.135Z"),
+                         Transition(state="done", at="2025-03-14T10:15:31.904Z")],
+            progress=Progress(phase="done", seq=9, step=4, max_steps=12, coverage_percent=97.9, drawing_points=4210,
+                              at="2025-03-14T10:15:31.906Z"),
+            result=result,
+            artifacts=Artifacts(dir=f"/var/lib/scrapcell/jobs/{J}",
+                                files=["coverage.png", "cut_path.csv", "cut_path.json", "cut_trajectory.npz",
+                                       "drawing.ply", "result.json", "scan.rrd", "surface.ply", "view0.png"])),
+        "list_request": ListJobsRequest(limit=5, state="done"),
+        "list": JobList(cell_id="sim-1", total=42, limit=5, jobs=[
+            JobBrief(job_id=J, state="done", created_at=T0, updated_at="2025-03-14T10:15:31.906Z",
+                     scene="smooth_cylinder", planner="gnbv", coverage_percent=97.9)]),
+        "cancel_request": CancelRequest(reason="wrong part on the table"),
+        "cancel_reply": CancelReply(job_id=J, state="cancelling"),
+        "status": CellStatus(cell_id="sim-1", version="0.1.0", mode="sim", arm_ready=True, camera_ready=True,
+                             devices="pybullet twin (arm and D435), built per job", accepting_jobs=True,
+                             queue_length=1, queue_max=8, running_job=J, jobs_total=42,
+                             started_at="2025-03-14T08:00:00.000Z", uptime_s=8100.12),
+        "event_step": JobEvent(job_id=J, seq=3, phase="scanning", state="running", step=1, max_steps=12,
+                               coverage_percent=87.2, drawing_points=3665, time="2025-03-14T10:15:06.512Z"),
+        "event_done": JobEvent(job_id=J, seq=9, phase="done", state="done", step=4, max_steps=12,
+                               coverage_percent=97.9, drawing_points=4210, time="2025-03-14T10:15:31.906Z"),
+    }
+
+
+def _json(m: BaseModel) -> str:
+    return "```json\n" + json.dumps(m.model_dump(mode="json", exclude_none=True), indent=2) + "\n```"
+
+
+def _type(prop: dict, defs: dict) -> str:
+    if "$ref" in prop:
+        name = prop["$ref"].split("/")[-1]
+        return f"[{name}](#{name.lower()})"
+    if "anyOf" in prop:
+        return " \\| ".join(_type(p, defs) for p in prop["anyOf"])
+    if "const" in prop:
+        return f"`{json.dumps(prop['const'])}`"
+    if "enum" in prop:
+        return " \\| ".join(f"`{json.dumps(v)}`" for v in prop["enum"])
+    t = prop.get("type", "any")
+    if t == "array":
+        return f"array of {_type(prop.get('items', {}), defs)}"
+    if t == "object" and "additionalProperties" in prop:
+        return f"object of {_type(prop['additionalProperties'], defs)}"
+    return t
+
+
+def _constraints(prop: dict) -> str:
+    out = []
+    for p in [prop, *prop.get("anyOf", [])]:
+        for k, label in (("minimum", "≥"), ("exclusiveMinimum", ">"), ("maximum", "≤"), ("maxLength", "length ≤"),
+                         ("maxItems", "items ≤")):
+            if k in p:
+                out.append(f"{label} {p[k]}")
+        if "pattern" in p:
+            out.append(f"pattern `{p['pattern']}`")
+    return ", ".join(out)
+
+
+def field_table(model: type[BaseModel]) -> str:
+    schema = model.model_json_schema(mode="serialization")
+    defs = schema.get("$defs", {})
+    required = set(schema.get("required", []))
+    rows = ["| field | type | required / default | constraints | meaning |", "|---|---|---|---|---|"]
+    for name, prop in schema["properties"].items():
+        if name in required:
+            req = "**required**"
+        elif "default" in prop:
+            req = f"`{json.dumps(prop['default'])}`"
+        else:
+            req = "optional"
+        desc = (prop.get("description") or "").replace("|", "\\|").replace("\n", " ")
+        cons = _constraints(prop).replace("|", "\\|")
+        rows.append(f"| `{name}` | {_type(prop, defs)} | {req} | {cons} | {desc} |")
+    return "\n".join(rows)
+
+
+MODELS: list[type[BaseModel]] = [ScanDrawingRequest, SubmitReply, ListJobsRequest, JobList, JobBrief, JobRecord,
+                                 Transition, Progress, ResultSummary, CutPathSummary, DryRunSummary, Artifacts,
+                                 CancelRequest, CancelReply, CellStatus, JobEvent, ErrorReply, ErrorDetail]
+
+
+def render() -> str:
+    ex = examples()
+    k = "cell/<cell_id>"
+    parts = [f"""# scrapcell job API over Zenoh (schema version {SCHEMA_VERSION})
+
+<!-- Generated by `python -m cellctl.apidoc > docs/API.md` from cellctl/api.py. Do not edit by hand:
+     tests/test_api_models.py fails when this file and the models disagree. -->
+
+An operator tablet submits "scan drawing" to a cell (a Panda + D435 behind `cellctl serve`) and gets the
+cutting path back. Transport: [Zenoh](https://zenoh.io) 1.x (eclipse-zenoh 1.10.2). Every payload is UTF-8
+JSON (Zenoh encoding `application/json`), every message carries `schema_version` ({SCHEMA_VERSION}), unknown
+fields are refused and types are strict (`"5"` is not `5`). Python clients: `cellctl.client.CellClient`;
+command line: `cellctl submit|jobs|status --cell <cell_id> --connect <endpoint>`.
+
+## Connecting
+
+- The cell is either a Zenoh **peer** listening on `service.listen` (default `tcp/127.0.0.1:7447`), or a
+  **client** of a Zenoh router at `service.connect`. A tablet opens a client session that connects to the
+  cell's endpoint or to the router. With explicit endpoints multicast scouting is off.
+- `{k}/alive` is a liveliness token: present while the service is up and ready for jobs.
+- **Access control.** When the router enforces Zenoh access control, a denied query is not answered at
+  all (no error reply): the querier sees **no reply within its timeout** (in practice often at once).
+  Clients report that as "no reply ... (waited up to 5 s): the cell is down, or access control denied
+  this request" (`NoReply`, `cellctl` exit status 3). Error replies (below) come from the cell itself.
+  A query on a key that no queryable serves (wrong cell id) also gets no reply.
+- The service itself needs, on a router with access control: `declare_queryable` on `{k}/jobs/**`
+  and `{k}/status`, `put` on `{k}/jobs/*/events`, `liveliness_token` on `{k}/alive`, and `reply`
+  (egress) on those keys. Rules per key expression (e.g. a viewer that may only query `cell/*/status`
+  and `cell/*/jobs`) work: queries are checked against their own key.
+
+## Key expressions
+
+| key expression | kind | query payload | reply |
+|---|---|---|---|
+| `{k}/jobs/submit` | queryable | [ScanDrawingRequest](#scandrawingrequest) (required) | [SubmitReply](#submitreply), at once |
+| `{k}/jobs` | queryable | [ListJobsRequest](#listjobsrequest) (optional) | [JobList](#joblist), newest first |
+| `{k}/jobs/<job_id>` | queryable | none (ignored) | [JobRecord](#jobrecord) |
+| `{k}/jobs/<job_id>/cancel` | queryable | [CancelRequest](#cancelrequest) (optional) | [CancelReply](#cancelreply) |
+| `{k}/jobs/<job_id>/events` | publication | - | [JobEvent](#jobevent) samples |
+| `{k}/status` | queryable | none (ignored) | [CellStatus](#cellstatus) |
+| `{k}/alive` | liveliness token | - | - |
+
+Any query can instead get an **error reply** (Zenoh `reply_err`) with an [ErrorReply](#errorreply) payload.
+Queries on `{k}/jobs/**` must use exact keys (no `*`/`**`): a wildcard gets `invalid_request`. Payloads over
+{MAX_PAYLOAD_BYTES} bytes get `payload_too_large`.
+
+### Submit: `{k}/jobs/submit`
+
+Validates the request, stores the job, queues it and replies at once; the job then runs when the arm is
+free (one job at a time, first in first out). Request:
+
+{_json(ex["request"])}
+
+Reply:
+
+{_json(ex["submit_reply"])}
+
+Error replies, e.g. an unknown planner, or a full queue:
+
+{_json(ex["error_invalid"])}
+
+{_json(ex["error_queue_full"])}
+
+To follow a job from its first event, subscribe to `{k}/jobs/*/events` **before** submitting and keep the
+events whose `job_id` is the one in the reply (`CellClient.submit(request, on_event=...)` does this).
+
+### A job: `{k}/jobs/<job_id>`
+
+The job's record, kept in the cell's SQLite store across restarts: request, state and its transitions,
+last progress, result summary, error, and the artifacts folder on the cell controller
+(`<data_dir>/jobs/<job_id>/`: result.json, drawing.ply, surface.ply, cut_path.json/.csv,
+cut_trajectory.npz, scan.rrd, coverage.png, view0.png).
+
+{_json(ex["record"])}
+
+### Job list: `{k}/jobs`
+
+Newest first, at most `limit` (≤ {api.LIST_LIMIT_MAX}); optional payload:
+
+{_json(ex["list_request"])}
+
+{_json(ex["list"])}
+
+### Cancel: `{k}/jobs/<job_id>/cancel`
+
+A queued job is cancelled at once (`state: "cancelled"`). A running job's scan stops at once (the arm
+is stopped mid-move, the partial result and artifacts are kept, no cut is planned): the reply says
+`cancelling` and the final `cancelled` follows as an event and in the record. A job that already ended:
+`not_cancellable`; an unknown id: `not_found`.
+
+{_json(ex["cancel_request"])}
+
+{_json(ex["cancel_reply"])}
+
+### Events: `{k}/jobs/<job_id>/events`
+
+One event per phase change and per exploration step. `seq` counts 0, 1, 2, ... per job without gaps
+(a gap means a lost event: read the record). Phases in order: `queued` → `scanning` (once when the job
+starts, then once per step) → `planning-cut` → one of `done`, `failed`, `cancelled`, `interrupted`.
+The record is written before the event is published: after a terminal event the record is final.
+
+{_json(ex["event_step"])}
+
+{_json(ex["event_done"])}
+
+### Status: `{k}/status`
+
+{_json(ex["status"])}
+
+## Job states
+
+`queued` → `running` → (`cancelling` →) `done` | `failed` | `cancelled` | `interrupted`; a queued job can
+go straight to `cancelled` or `interrupted`.
+
+- `done`: the scan ended by itself (quality, frontier, max_steps, ...); `result.cut` has the cutting path
+  summary (with its own `error` when no feasible path was found).
+- `failed`: the scan failed (`error`), or ran longer than `service.job_timeout_s` (`error` starts with
+  `timeout:`); the partial result is kept.
+- `cancelled`: by a cancel request; the partial result is kept.
+- `interrupted`: the service stopped (SIGTERM/SIGINT: the running job is stopped, its partial result
+  kept) or died (found `queued`/`running` at the next start). Never silently lost: resubmit it.
+
+## Error codes
+
+| code | when |
+|---|---|
+""" + "\n".join(f"| `{c}` | {m} |" for c, m in ERROR_CODES.items()) + """
+
+## Messages
+"""]
+    for m in MODELS:
+        doc = (m.__doc__ or "").strip()
+        parts.append(f"### {m.__name__}\n\n" + (f"{doc}\n\n" if doc else "") + field_table(m) + "\n")
+    return "\n".join(parts)
+
+
+def main() -> None:
+    sys.stdout.write(render())
+
+
+if __name__ == "__main__":
+    main()

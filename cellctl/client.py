@@ -1,0 +1,223 @@
+"""A small client of the job API for the operator tablet (and `cellctl submit/jobs/status`).
+
+Needs only zenoh and pydantic. Every call either returns a reply model, raises CellError (the cell
+answered with an error code), or raises NoReply: with Zenoh access control a denied query is not
+answered at all, so "no reply" means "the cell is down, or you may not ask this"."""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import threading
+import time
+from typing import Callable, TypeVar
+
+import zenoh
+from pydantic import BaseModel, ValidationError
+
+from cellctl.api import (TERMINAL_STATES, CancelReply, CancelRequest, CellStatus, ErrorReply, JobEvent, JobList,
+                         JobRecord, Keys, ListJobsRequest, ScanDrawingRequest, SubmitReply, dumps)
+
+log = logging.getLogger("cellctl.client")
+M = TypeVar("M", bound=BaseModel)
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+def zenoh_error(e: Exception) -> str:
+    """Zenoh's message without the Rust source locations it appends."""
+    return re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(e)).strip()
+
+
+class CellError(RuntimeError):
+    """The cell answered with an error reply (docs/API.md lists the codes)."""
+
+    def __init__(self, code: str, message: str, details: list | None = None):
+        super().__init__(f"{code}: {message}")
+        self.code, self.message, self.details = code, message, details or []
+
+
+class NoReply(TimeoutError):
+    """No reply at all: the cell is down, unreachable, or access control denied the request."""
+
+
+class CellUnreachable(ConnectionError):
+    """The Zenoh session could not be opened (no router/peer at the endpoints)."""
+
+
+class Subscription:
+    def __init__(self, sub):
+        self._sub = sub
+        self.ended = False  # the job's terminal event was delivered
+
+    def close(self) -> None:
+        if self._sub is not None:
+            try:
+                self._sub.undeclare()
+            except Exception:  # noqa: BLE001 - session already closed
+                pass
+            self._sub = None
+
+
+class CellClient:
+    def __init__(self, cell_id: str, connect: list[str] | tuple[str, ...] = (DEFAULT_ENDPOINT,), *,
+                 timeout_s: float = 5.0, mode: str = "client", zenoh_config_file: str | None = None):
+        self.keys = Keys(cell_id)
+        self.cell_id, self.timeout_s, self.connect = cell_id, timeout_s, list(connect)
+        conf = zenoh.Config.from_file(zenoh_config_file) if zenoh_config_file else zenoh.Config()
+        conf.insert_json5("mode", json.dumps(mode))
+        if self.connect:
+            conf.insert_json5("connect/endpoints", json.dumps(self.connect))
+            conf.insert_json5("scouting/multicast/enabled", "false")
+        self._subs: list[Subscription] = []
+        try:
+            self.session = zenoh.open(conf)
+        except zenoh.ZError as e:
+            raise CellUnreachable(f"cannot reach the cell network at {', '.join(self.connect) or '(scouting)'}: "
+                                  f"{zenoh_error(e)}") from None
+
+    def __enter__(self) -> CellClient:
+        return self
+
+    def __exit__(self, *_exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the session explicitly: an unclosed session can hang the interpreter's exit."""
+        if self.session is not None:
+            for sub in self._subs:
+                sub.close()
+            self._subs.clear()
+            self.session.close()
+            self.session = None
+
+    # --- queries ----------------------------------------------------------------------------------
+    def _query(self, key: str, model: type[M], payload: bytes | None = None, timeout_s: float | None = None) -> M:
+        t = self.timeout_s if timeout_s is None else timeout_s
+        for reply in self.session.get(key, payload=payload, timeout=t):
+            if reply.ok is not None:
+                try:
+                    return model.model_validate_json(reply.ok.payload.to_bytes())
+                except ValidationError as e:
+                    raise CellError("bad_reply", f"{key}: the cell's reply does not match this client's API "
+                                                 f"({model.__name__}): {e.errors()[0]['msg']}") from None
+            raw = reply.err.payload.to_bytes()
+            try:
+                err = ErrorReply.model_validate_json(raw)
+            except ValidationError:
+                raise CellError("bad_reply", f"{key}: {raw[:300]!r}") from None
+            raise CellError(err.code, err.message, [d.model_dump() for d in err.details])
+        raise NoReply(f"no reply from cell {self.cell_id!r} to {key} (waited up to {t:g} s): the cell is down, "
+                      f"or access control denied this request")
+
+    def status(self, timeout_s: float | None = None) -> CellStatus:
+        return self._query(self.keys.status, CellStatus, timeout_s=timeout_s)
+
+    def submit(self, request: ScanDrawingRequest | dict | bytes,
+               on_event: Callable[[JobEvent], None] | None = None) -> SubmitReply:
+        """Queue a job. With ``on_event`` the job's events are delivered from the very first one
+        ("queued"): the subscription is made before the submit, so none is missed."""
+        if isinstance(request, dict):
+            payload = json.dumps(request).encode()
+        elif isinstance(request, bytes):
+            payload = request
+        else:
+            payload = dumps(request)
+        if on_event is None:
+            return self._query(self.keys.submit, SubmitReply, payload)
+        self._reap()
+        buffered: dict[str, list[JobEvent]] = {}
+        target: list[str] = []
+        lock = threading.Lock()  # held while delivering: buffered and live events never overtake each other
+
+        def deliver(ev: JobEvent) -> None:
+            with lock:
+                if not target:
+                    buffered.setdefault(ev.job_id, []).append(ev)
+                elif ev.job_id == target[0] and not sub.ended:
+                    sub.ended = ev.phase in TERMINAL_STATES
+                    _call(on_event, ev)
+
+        sub = self._subscribe(self.keys.all_events, deliver)
+        try:
+            reply = self._query(self.keys.submit, SubmitReply, payload)
+        except BaseException:
+            sub.close()
+            raise
+        self._subs.append(sub)
+        with lock:
+            target.append(reply.job_id)
+            for ev in sorted(buffered.pop(reply.job_id, []), key=lambda e: e.seq):
+                sub.ended = sub.ended or ev.phase in TERMINAL_STATES
+                _call(on_event, ev)
+            buffered.clear()
+        return reply
+
+    def _reap(self) -> None:
+        """Drop the subscriptions of submitted jobs that have ended (not from inside their callback)."""
+        for sub in [s for s in self._subs if s.ended]:
+            sub.close()
+            self._subs.remove(sub)
+
+    def job(self, job_id: str) -> JobRecord:
+        return self._query(self.keys.job(job_id), JobRecord)
+
+    def jobs(self, limit: int = 20, state: str | None = None) -> JobList:
+        return self._query(self.keys.jobs, JobList, dumps(ListJobsRequest(limit=limit, state=state)))
+
+    def cancel(self, job_id: str, reason: str | None = None) -> CancelReply:
+        return self._query(self.keys.cancel(job_id), CancelReply, dumps(CancelRequest(reason=reason)))
+
+    def alive(self, timeout_s: float = 2.0) -> bool:
+        """Is the cell's liveliness token there (the service is up and ready)?"""
+        return any(r.ok is not None for r in self.session.liveliness().get(self.keys.alive, timeout=timeout_s))
+
+    # --- events -----------------------------------------------------------------------------------
+    def events(self, job_id: str | None, callback: Callable[[JobEvent], None]) -> Subscription:
+        """Events of one job (or of every job: ``job_id=None``), delivered on a Zenoh thread."""
+        return self._subscribe(self.keys.events(job_id) if job_id else self.keys.all_events,
+                               lambda ev: _call(callback, ev))
+
+    def _subscribe(self, key: str, deliver: Callable[[JobEvent], None]) -> Subscription:
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                ev = JobEvent.model_validate_json(sample.payload.to_bytes())
+            except ValidationError as e:
+                log.warning("ignored an event on %s that does not match the API: %s", sample.key_expr, e)
+                return
+            deliver(ev)
+
+        return Subscription(self.session.declare_subscriber(key, on_sample))
+
+    def wait(self, job_id: str, timeout_s: float, on_event: Callable[[JobEvent], None] | None = None,
+             poll_s: float = 2.0) -> JobRecord:
+        """Until the job ends: woken by its terminal event, and re-reading the record every ``poll_s``
+        in case an event was lost. TimeoutError if it is still going after ``timeout_s``."""
+        ended = threading.Event()
+
+        def on(ev: JobEvent) -> None:
+            if on_event:
+                _call(on_event, ev)
+            if ev.phase in TERMINAL_STATES:
+                ended.set()
+
+        sub = self._subscribe(self.keys.events(job_id), on)
+        try:
+            deadline = time.monotonic() + timeout_s
+            while True:
+                rec = self.job(job_id)
+                if rec.state in TERMINAL_STATES:
+                    return rec
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(f"job {job_id} is still {rec.state} after {timeout_s:g} s")
+                ended.wait(min(poll_s, left))
+        finally:
+            sub.close()
+
+
+def _call(cb: Callable[[JobEvent], None], ev: JobEvent) -> None:
+    try:
+        cb(ev)
+    except Exception:  # noqa: BLE001 - a client callback bug must not kill Zenoh's thread
+        log.exception("event callback failed")

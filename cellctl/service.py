@@ -1,0 +1,534 @@
+"""The cell-controller service: the job API over Zenoh (docs/API.md) in front of one arm.
+
+Jobs run one at a time, in submission order, in one worker thread (there is one arm); the Zenoh
+callbacks only validate, queue and read the store, so the cell answers status and job queries while a
+scan runs. Every job's life is in the SQLite store before anyone is told about it: a client that sees
+an event can always read the matching record."""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import logging
+import os
+import secrets
+import signal
+import sys
+import threading
+import time
+from collections import deque
+from datetime import datetime, timezone
+from importlib import metadata
+from importlib.util import find_spec
+from pathlib import Path
+
+import zenoh
+
+from cellctl.api import (ApiError, Artifacts, CancelReply, CancelRequest, CellStatus, JobEvent, JobList, Keys,
+                         ListJobsRequest, Progress, ResultSummary, ScanDrawingRequest, SubmitReply, dumps,
+                         parse_payload)
+from cellctl.artifacts import _default as _json_default
+from cellctl.client import zenoh_error
+from cellctl.config import CellConfig, ServiceConfig
+from cellctl.store import JobStore, StoreError, now_iso
+
+log = logging.getLogger("cellctl.service")
+JSON = zenoh.Encoding.APPLICATION_JSON
+
+
+def version() -> str:
+    try:
+        return metadata.version("scrapcell")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def new_job_id() -> str:
+    return datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ") + "-" + secrets.token_hex(3)
+
+
+def zenoh_config(scfg: ServiceConfig, cfg_dir: Path, *, listen: list[str] | None = None,
+                 connect: list[str] | None = None) -> zenoh.Config:
+    """Peer listening on loopback by default, or client of a router. Explicit endpoints turn multicast
+    scouting off: a cell must not wander into another cell's session on the shop network."""
+    listen = scfg.listen if listen is None else listen
+    connect = scfg.connect if connect is None else connect
+    if scfg.zenoh_config_file:
+        p = Path(scfg.zenoh_config_file)
+        conf = zenoh.Config.from_file(str(p if p.is_absolute() else cfg_dir / p))
+    else:
+        conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(scfg.zenoh_mode))
+    if scfg.zenoh_mode == "peer" and listen:
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    if listen or connect:
+        conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+class ServiceError(RuntimeError):
+    """The service cannot start (its data dir is in use by another one)."""
+
+
+class JobControl:
+    """The running job's cancel switch; the first reason wins (operator, timeout, shutdown)."""
+
+    def __init__(self, job_id: str):
+        self.job_id = job_id
+        self.cancel = threading.Event()
+        self.reason: str | None = None
+        self._lock = threading.Lock()
+
+    def request(self, reason: str) -> bool:
+        with self._lock:
+            if self.cancel.is_set():
+                return False
+            self.reason = reason
+            self.cancel.set()
+            return True
+
+
+class CellService:
+    def __init__(self, cfg: CellConfig, cfg_path: Path, data_dir: str | Path | None = None, *,
+                 listen: list[str] | None = None, connect: list[str] | None = None):
+        from planners.config import load_planners_config
+
+        self.cfg, self.cfg_path, self.scfg = cfg, Path(cfg_path), cfg.service
+        if self.scfg.rerun_connect:
+            self.cfg = cfg.model_copy(update={"rerun_connect": self.scfg.rerun_connect})
+        self.data_dir = Path(data_dir or self.scfg.data_dir).resolve()
+        self.keys = Keys(cfg.cell_id)
+        self.default_max_steps = load_planners_config(self.cfg_path.parent / cfg.planners_config).max_steps
+        self.listen = self.scfg.listen if listen is None else listen
+        self.connect = self.scfg.connect if connect is None else connect
+        self.store = JobStore(self.data_dir / "jobs.sqlite")
+        self._queue: deque[str] = deque()
+        self._cv = threading.Condition()
+        self._running: JobControl | None = None
+        self._accepting = False
+        self._stopping = threading.Event()
+        self._events_lock = threading.Lock()
+        self._seq: dict[str, int] = {}
+        self._worker: threading.Thread | None = None
+        self.session: zenoh.Session | None = None
+        self._declared: list = []
+        self._lock_file = None
+        self.started_at = now_iso()
+        self._t0 = time.monotonic()
+
+    def job_dir(self, job_id: str) -> Path:
+        return self.data_dir / "jobs" / job_id
+
+    # --- life cycle -------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Mark what a previous process left unfinished as interrupted, open the session, declare the
+        API, start the worker. On any failure the session is closed again."""
+        self._lock_data_dir()
+        recovered = self.store.interrupt_unfinished("the service stopped before the job ended")
+        self.session = zenoh.open(zenoh_config(self.scfg, self.cfg_path.parent, listen=self.listen,
+                                               connect=self.connect))
+        try:
+            s, k = self.session, self.keys
+            self._declared.append(s.declare_queryable(k.status, self._on_status_query))
+            self._declared.append(s.declare_queryable(k.jobs_tree, self._on_jobs_query))
+            for job_id in recovered:
+                rec = self.store.get(job_id)
+                self._seq[job_id] = rec.progress.seq if rec and rec.progress else -1
+                self._emit(job_id, "interrupted", "interrupted", message="the service stopped before the job ended")
+            self._worker = threading.Thread(target=self._work, name="cell-worker", daemon=True)
+            self._worker.start()
+            with self._cv:
+                self._accepting = True
+            self._declared.append(s.liveliness().declare_token(k.alive))  # last: alive means ready
+        except BaseException:
+            self.close()
+            raise
+        if recovered:
+            log.warning("marked %d unfinished job(s) interrupted: %s", len(recovered), ", ".join(recovered))
+
+    def _lock_data_dir(self) -> None:
+        """One service per data dir: a second one would mark the first one's running job interrupted."""
+        f = open(self.data_dir / "service.lock", "a+")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            pid = f.read().strip() or "?"
+            f.close()
+            raise ServiceError(f"{self.data_dir} is in use by another service (pid {pid})") from None
+        f.truncate(0)
+        f.write(str(os.getpid()))
+        f.flush()
+        self._lock_file = f
+
+    def stop(self, grace_s: float | None = None) -> None:
+        """Take no more jobs, interrupt the queued ones, cancel the running one and wait for it to
+        write its partial result (at most ``grace_s``)."""
+        grace_s = self.scfg.shutdown_grace_s if grace_s is None else grace_s
+        with self._cv:
+            self._accepting = False
+            self._stopping.set()
+            queued = list(self._queue)
+            self._queue.clear()
+            running = self._running
+            if running is not None:
+                running.request("shutdown")
+            self._cv.notify_all()
+        for job_id in queued:
+            self._finish(job_id, "interrupted", "the service was stopped before the job started")
+        if self._worker is not None:
+            self._worker.join(grace_s)
+            if self._worker.is_alive() and running is not None:
+                log.error("job %s did not stop within %.0f s; marking it interrupted", running.job_id, grace_s)
+                self._finish(running.job_id, "interrupted", f"the service was stopped; the job did not stop "
+                             f"within {grace_s:.0f} s")
+
+    def close(self) -> None:
+        """Undeclare everything and close the Zenoh session (an unclosed session can hang the
+        interpreter's exit for minutes). Idempotent."""
+        while self._declared:
+            obj = self._declared.pop()
+            try:
+                obj.undeclare()
+            except Exception:  # noqa: BLE001 - closing anyway
+                pass
+        if self.session is not None:
+            try:
+                self.session.close()
+            finally:
+                self.session = None
+        self.store.close()
+        if self._lock_file is not None:
+            self._lock_file.close()  # releases the flock
+            self._lock_file = None
+
+    # --- Zenoh handlers ---------------------------------------------------------------------------
+    def _on_status_query(self, query: zenoh.Query) -> None:
+        with query:
+            self._answer(query, lambda payload: self.status())
+
+    def _on_jobs_query(self, query: zenoh.Query) -> None:
+        """One queryable on cell/<id>/jobs/** (separate ones for jobs/submit and jobs/* would both
+        receive a query on jobs/submit)."""
+        with query:
+            self._answer(query, lambda payload: self._route(str(query.key_expr), payload))
+
+    def _answer(self, query: zenoh.Query, handle) -> None:
+        key = str(query.key_expr)
+        try:
+            raw = query.payload
+            if raw is not None and len(raw) > 1 << 20:  # don't even copy it
+                raise ApiError("payload_too_large", f"payload is {len(raw)} bytes")
+            reply = handle(raw.to_bytes() if raw is not None else None)
+            query.reply(key, dumps(reply), encoding=JSON)
+        except ApiError as e:
+            log.info("%s: %s", key, e)
+            query.reply_err(dumps(e.reply()), encoding=JSON)
+        except Exception:  # noqa: BLE001 - a bug answers internal_error; the service keeps serving
+            log.exception("query on %s failed", key)
+            query.reply_err(dumps(ApiError("internal_error", "the service failed on this request; see its log")
+                                  .reply()), encoding=JSON)
+
+    def _route(self, key: str, payload: bytes | None):
+        if any(ch in key for ch in "*$"):
+            raise ApiError("invalid_request", f"{key}: wildcards are not served; query {self.keys.jobs}, "
+                           f"{self.keys.submit}, {self.keys.jobs}/<job_id> or {self.keys.jobs}/<job_id>/cancel")
+        rest = key[len(self.keys.jobs):].strip("/")
+        parts = rest.split("/") if rest else []
+        if not parts:
+            return self.list_jobs(parse_payload(payload, ListJobsRequest, required=False))
+        if parts == ["submit"]:
+            return self.submit(parse_payload(payload, ScanDrawingRequest))
+        if len(parts) == 1:
+            return self.job(parts[0])
+        if len(parts) == 2 and parts[1] == "cancel":
+            return self.cancel(parts[0], parse_payload(payload, CancelRequest, required=False))
+        if len(parts) == 2 and parts[1] == "events":
+            raise ApiError("invalid_request", f"{key} is published, not queried: subscribe to it")
+        raise ApiError("invalid_request", f"no such key: {key}")
+
+    # --- the API ----------------------------------------------------------------------------------
+    def status(self) -> CellStatus:
+        with self._cv:
+            queue_length, running, accepting = len(self._queue), self._running, self._accepting
+        ok = find_spec("pybullet") is not None
+        return CellStatus(cell_id=self.cfg.cell_id, version=version(), mode=self.cfg.mode, arm_ready=ok,
+                          camera_ready=ok, devices="pybullet twin (arm and D435), built per job",
+                          accepting_jobs=accepting, queue_length=queue_length, queue_max=self.scfg.queue_max,
+                          running_job=running.job_id if running else None, jobs_total=self.store.count(),
+                          started_at=self.started_at, uptime_s=round(time.monotonic() - self._t0, 3))
+
+    def submit(self, req: ScanDrawingRequest) -> SubmitReply:
+        self._check_scene(req.scene)
+        with self._cv:
+            if not self._accepting:
+                raise ApiError("shutting_down", "the service is stopping and takes no new jobs")
+            if len(self._queue) >= self.scfg.queue_max:
+                raise ApiError("queue_full", f"{len(self._queue)} jobs are waiting (service.queue_max = "
+                               f"{self.scfg.queue_max}); submit again when one has started")
+            job_id = new_job_id()
+            while self.store.state(job_id) is not None:
+                job_id = new_job_id()
+            self.store.create(job_id, self.cfg.cell_id, req, str(self.job_dir(job_id)))
+            self._queue.append(job_id)
+            position = len(self._queue)
+            # under the lock: the worker cannot start the job (and publish "scanning") before "queued"
+            self._emit(job_id, "queued", "queued", max_steps=req.max_steps or self.default_max_steps)
+            self._cv.notify()
+        log.info("job %s queued (%s, %s, position %d)", job_id, req.scene, req.planner, position)
+        return SubmitReply(job_id=job_id, queue_position=position)
+
+    def job(self, job_id: str):
+        rec = self.store.get(job_id)
+        if rec is None:
+            raise ApiError("not_found", f"no job {job_id!r} on cell {self.cfg.cell_id}")
+        return rec
+
+    def list_jobs(self, req: ListJobsRequest) -> JobList:
+        jobs, total = self.store.list(req.limit, req.state)
+        return JobList(cell_id=self.cfg.cell_id, jobs=jobs, total=total, limit=req.limit)
+
+    def cancel(self, job_id: str, req: CancelRequest) -> CancelReply:
+        note = f"cancel requested{': ' + req.reason if req.reason else ''}"
+        with self._cv:
+            if self._running is not None and self._running.job_id == job_id:
+                if self._running.request("operator"):
+                    self.store.transition(job_id, "cancelling", note)
+                    return CancelReply(job_id=job_id, state="cancelling")
+                return CancelReply(job_id=job_id, state=self.store.state(job_id))  # already stopping
+            if job_id in self._queue:
+                self._queue.remove(job_id)
+                self._finish(job_id, "cancelled", note)
+                return CancelReply(job_id=job_id, state="cancelled")
+            state = self.store.state(job_id)
+        if state is None:
+            raise ApiError("not_found", f"no job {job_id!r} on cell {self.cfg.cell_id}")
+        raise ApiError("not_cancellable", f"job {job_id} already ended: {state}")
+
+    def _check_scene(self, scene: str) -> None:
+        from sim.scenes import SCENE_NAMES
+
+        if scene in SCENE_NAMES:
+            return
+        if scene.lower().endswith((".yaml", ".yml")):
+            if Path(scene).is_file():
+                return
+            raise ApiError("invalid_request", f"scene: no file {scene!r} on the cell controller",
+                           [_detail("scene", "no such scene file")])
+        raise ApiError("invalid_request", f"scene: unknown scene {scene!r}; built-in: {', '.join(SCENE_NAMES)}",
+                       [_detail("scene", "unknown scene")])
+
+    # --- events -----------------------------------------------------------------------------------
+    def _emit(self, job_id: str, phase: str, state: str, *, step: int | None = None, max_steps: int | None = None,
+              coverage_percent: float | None = None, drawing_points: int | None = None,
+              message: str | None = None) -> None:
+        """Number, store (as the job's progress) and publish one event. Publication never raises: a
+        lost event must not fail the job (the record has the same facts)."""
+        with self._events_lock:
+            seq = self._seq.get(job_id, -1) + 1
+            self._seq[job_id] = seq
+            at = now_iso()
+            if max_steps is None or step is None or coverage_percent is None:  # carry what the last event knew
+                rec = self.store.get(job_id)
+                last = rec.progress if rec else None
+                if last is not None:
+                    max_steps = max_steps if max_steps is not None else last.max_steps
+                    if phase not in ("queued",):
+                        step = step if step is not None else last.step
+                        coverage_percent = coverage_percent if coverage_percent is not None else last.coverage_percent
+                        drawing_points = drawing_points if drawing_points is not None else last.drawing_points
+            ev = JobEvent(job_id=job_id, seq=seq, phase=phase, state=state, step=step, max_steps=max_steps,
+                          coverage_percent=coverage_percent, drawing_points=drawing_points, time=at,
+                          message=message[:2000] if message else None)
+            self.store.set_progress(job_id, Progress(phase=phase, seq=seq, step=step, max_steps=max_steps,
+                                                     coverage_percent=coverage_percent,
+                                                     drawing_points=drawing_points, at=at))
+            if phase in ("done", "failed", "cancelled", "interrupted"):
+                self._seq.pop(job_id, None)
+            session = self.session
+            if session is None:
+                return
+            try:
+                session.put(self.keys.events(job_id), dumps(ev), encoding=JSON)
+            except Exception as e:  # noqa: BLE001 - session closing
+                log.warning("event %s/%d not published: %s", job_id, seq, e)
+
+    # --- the worker -------------------------------------------------------------------------------
+    def _work(self) -> None:
+        while True:
+            with self._cv:
+                while not self._queue and not self._stopping.is_set():
+                    self._cv.wait()
+                if self._stopping.is_set():
+                    return
+                job_id = self._queue.popleft()
+                ctl = self._running = JobControl(job_id)
+                self.store.transition(job_id, "running")
+            try:
+                self._run(ctl)
+            except Exception:  # noqa: BLE001 - the worker must outlive any one job
+                log.exception("job %s: the worker failed", job_id)
+                self._finish(job_id, "failed", "internal error in the service", error="internal error; see the "
+                             "service log")
+            finally:
+                with self._cv:
+                    self._running = None
+
+    def _run(self, ctl: JobControl) -> None:
+        from cellctl.scan import StepRecord
+        from cellctl.scan_run import run_scan_in_twin
+
+        job_id = ctl.job_id
+        rec = self.store.get(job_id)
+        req = rec.request
+        max_steps = req.max_steps or self.default_max_steps
+        job_dir = self.job_dir(job_id)
+        log.info("job %s running: %s with %s", job_id, req.scene, req.planner)
+        self._emit(job_id, "scanning", "running", max_steps=max_steps, message="building the twin")
+
+        def on_step(r: StepRecord) -> None:
+            self._emit(job_id, "scanning", self._state_of(ctl), step=r.step, coverage_percent=r.coverage_percent,
+                       drawing_points=r.drawing_points)
+
+        def on_phase(phase: str) -> None:
+            if phase == "planning-cut":
+                self._emit(job_id, "planning-cut", self._state_of(ctl))
+
+        timer = threading.Timer(self.scfg.job_timeout_s, ctl.request, ("timeout",))
+        timer.daemon = True
+        timer.start()
+        result, error = None, None
+        try:
+            if not ctl.cancel.is_set():
+                result, _ = run_scan_in_twin(self.cfg, self.cfg_path, req.scene, req.planner, seed=req.seed,
+                                             noise=req.noise, max_steps=req.max_steps, progress=False, cut=True,
+                                             dry_run_cut=req.dry_run_cut, run_dir=job_dir, cancel=ctl.cancel,
+                                             on_step=on_step, on_phase=on_phase)
+                error = result.error
+        except Exception as e:  # noqa: BLE001 - a failed job, not a failed service
+            error = f"{type(e).__name__}: {e}"
+            log.warning("job %s failed: %s", job_id, error)
+        finally:
+            timer.cancel()
+        summary = _summary(result) if result is not None else _summary_from_file(job_dir / "result.json")
+        if ctl.reason == "shutdown":
+            state, note, error = "interrupted", "the service was stopped", error or "interrupted: the service was stopped"
+        elif ctl.reason == "timeout":
+            state, note = "failed", f"timeout after {self.scfg.job_timeout_s:g} s"
+            error = f"timeout: the job ran longer than service.job_timeout_s = {self.scfg.job_timeout_s:g} s"
+        elif ctl.reason == "operator":
+            state, note = "cancelled", "cancelled by the operator"
+        elif error:
+            state, note = "failed", "the scan failed"
+        else:
+            state, note = "done", None
+        self._finish(job_id, state, note, result=summary, error=error)
+
+    def _state_of(self, ctl: JobControl) -> str:
+        return "cancelling" if ctl.cancel.is_set() and ctl.reason == "operator" else "running"
+
+    def _finish(self, job_id: str, state: str, note: str | None, *, result: ResultSummary | None = None,
+                error: str | None = None) -> None:
+        """The terminal transition, then its event (a client seeing the event finds the record final)."""
+        d = self.job_dir(job_id)
+        files = sorted(p.name for p in d.iterdir() if p.is_file()) if d.is_dir() else []
+        with self._cv:  # with the record final, the job is no longer the running one (cancel, status)
+            try:
+                self.store.transition(job_id, state, note, result=result, error=error,
+                                      artifacts=Artifacts(dir=str(d), files=files[:100]))
+            except StoreError as e:  # already ended (e.g. marked interrupted by a stop that gave up waiting)
+                log.warning("%s", e)
+                return
+            finally:
+                if self._running is not None and self._running.job_id == job_id:
+                    self._running = None
+        last = result.coverage_percent if result is not None else None
+        self._emit(job_id, state, state, coverage_percent=last, message=(error or note or "")[:2000] or None)
+        log.info("job %s %s%s", job_id, state, f": {error.splitlines()[0]}" if error else "")
+
+
+def _detail(loc: str, msg: str):
+    from cellctl.api import ErrorDetail
+
+    return ErrorDetail(loc=loc, msg=msg)
+
+
+_SUMMARY_FIELDS = tuple(ResultSummary.model_fields)
+
+
+def _summary(result) -> ResultSummary:
+    return _summary_from_dict(result.to_dict())
+
+
+def _summary_from_dict(d: dict) -> ResultSummary:
+    """ScanResult dict -> ResultSummary, through JSON so numpy scalars become plain numbers."""
+    s = {k: d.get(k) for k in _SUMMARY_FIELDS if k in d}
+    if s.get("error"):
+        s["error"] = str(s["error"])[:2000]
+    cut = d.get("cut")
+    if cut:
+        s["cut"] = {k: cut.get(k) for k in ("branches", "feasible_branches", "poses", "feasible_poses", "length_m",
+                                            "planning_s", "infeasible", "error", "dry_run")}
+        if cut.get("error"):
+            s["cut"]["error"] = str(cut["error"])[:2000]
+        dr = cut.get("dry_run")
+        if dr:
+            s["cut"]["dry_run"] = {**{k: v for k, v in dr.items() if k != "contacts"},
+                                   "contacts": len(dr.get("contacts") or [])}
+    return ResultSummary.model_validate_json(json.dumps(s, default=_json_default))
+
+
+def _summary_from_file(path: Path) -> ResultSummary | None:
+    try:
+        return _summary_from_dict(json.loads(path.read_text()))
+    except Exception:  # noqa: BLE001 - no (readable) partial result: the record says why the job failed
+        return None
+
+
+# --- `cellctl serve` ------------------------------------------------------------------------------
+def serve(cfg: CellConfig, cfg_path: Path, data_dir: str | None = None, *, listen: list[str] | None = None,
+          connect: list[str] | None = None) -> int:
+    """Run until SIGINT/SIGTERM; the running job is cancelled (interrupted) and the Zenoh session
+    closed on every way out."""
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s %(levelname)s %(message)s")
+    stop = threading.Event()
+
+    def on_signal(signum, _frame):
+        if stop.is_set():
+            log.warning("second %s: exiting without waiting for the job", signal.Signals(signum).name)
+            raise KeyboardInterrupt
+        log.info("%s: stopping", signal.Signals(signum).name)
+        stop.set()
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    svc = CellService(cfg, cfg_path, data_dir, listen=listen, connect=connect)
+    try:
+        try:
+            svc.start()
+        except ServiceError as e:
+            print(f"cellctl serve: {e}", file=sys.stderr)
+            return 1
+        except zenoh.ZError as e:
+            eps = ", ".join(svc.listen if cfg.service.zenoh_mode == "peer" else svc.connect)
+            print(f"cellctl serve: cannot open the Zenoh session ({cfg.service.zenoh_mode} on {eps}): "
+                  f"{zenoh_error(e)}",
+                  file=sys.stderr)
+            return 1
+        how = (f"listening on {', '.join(svc.listen)}" if cfg.service.zenoh_mode == "peer" and svc.listen
+               else f"client of {', '.join(svc.connect)}")
+        print(f"cell {cfg.cell_id}: serving cell/{cfg.cell_id}/** ({how}); data in {svc.data_dir}; pid {os.getpid()}",
+              flush=True)
+        while not stop.wait(0.5):
+            pass
+        svc.stop()
+        return 0
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        svc.close()
+        for s, h in old.items():
+            signal.signal(s, h)
+        log.info("stopped")
+

@@ -1,0 +1,323 @@
+"""The cell service end to end over real Zenoh on loopback: `cellctl serve` as a subprocess (free port,
+multicast scouting off, temp data dir), the CellClient, and short scans in the twin (smooth_cylinder,
+2 views, no noise). Nothing is mocked."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from cellctl.client import CellClient, CellError, NoReply
+from cellctl.service_bench import ROOT, ServiceProcess, free_port
+from cellctl.store import JobStore
+
+SHORT = {"scene": "smooth_cylinder", "max_steps": 2, "noise": False}
+LONG = {"scene": "smooth_cylinder", "max_steps": 12, "noise": False}  # cancelled or killed long before its end
+EXIT_S = 5.0  # a stopped service is gone within this
+
+
+class Events:
+    """Collects a job's events as the client delivers them (on Zenoh's thread)."""
+
+    def __init__(self):
+        self.items, self.times = [], []
+        self._cv = threading.Condition()
+
+    def __call__(self, ev) -> None:
+        with self._cv:
+            self.items.append(ev)
+            self.times.append(time.perf_counter())
+            self._cv.notify_all()
+
+    def wait_for(self, pred, timeout_s: float = 60.0):
+        with self._cv:
+            assert self._cv.wait_for(lambda: any(pred(e) for e in self.items), timeout_s), \
+                [(e.seq, e.phase, e.step) for e in self.items]
+            return next(e for e in self.items if pred(e))
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    """One service for the tests that need no restart; queue_max 1 makes 'queue full' cheap."""
+    svc = ServiceProcess(tmp_path_factory.mktemp("cell"), queue_max=1).start()
+    yield svc
+    rc, took = svc.stop(signal.SIGTERM)
+    assert rc == 0 and took < EXIT_S
+
+
+def test_submit_events_result_survive_a_restart(tmp_path):
+    svc = ServiceProcess(tmp_path, cell_id="cell-a").start()
+    try:
+        with svc.client() as c:
+            events = Events()
+            t0 = time.perf_counter()
+            job_id = c.submit(SHORT, on_event=events).job_id
+            rec = c.wait(job_id, 120)
+            first_event_ms = 1e3 * (events.times[0] - t0)
+            events.wait_for(lambda e: e.phase == "done", 10)
+            status = c.status()
+        assert rec.state == "done", rec.error
+        seqs = [e.seq for e in events.items]
+        assert seqs == list(range(len(seqs))), seqs
+        phases = [e.phase for e in events.items]
+        assert [p for i, p in enumerate(phases) if i == 0 or p != phases[i - 1]] == \
+            ["queued", "scanning", "planning-cut", "done"], phases
+        assert [e.step for e in events.items if e.phase == "scanning" and e.step is not None] == [0, 1]
+        assert all(e.job_id == job_id for e in events.items) and events.items[-1].coverage_percent > 0
+        r = rec.result
+        assert r.steps == 2 and r.terminated_by == "max_steps" and r.coverage_percent > 30
+        assert r.cut is not None and r.cut.poses > 0 and r.cut.length_m > 0
+        assert [t.state for t in rec.transitions] == ["queued", "running", "done"]
+        for name in ("result.json", "drawing.ply", "surface.ply", "cut_path.json", "cut_trajectory.npz", "scan.rrd"):
+            assert name in rec.artifacts.files and (Path(rec.artifacts.dir) / name).stat().st_size > 0, name
+        assert Path(rec.artifacts.dir) == svc.data_dir / "jobs" / job_id
+        assert json.loads((Path(rec.artifacts.dir) / "result.json").read_text())["steps"] == 2
+        assert status.cell_id == "cell-a" and status.queue_length == 0 and status.running_job is None
+        assert status.jobs_total == 1 and status.arm_ready and status.accepting_jobs
+        print(f"submit -> first event {first_event_ms:.1f} ms, startup {svc.startup_s:.2f} s")
+
+        rc, took = svc.stop(signal.SIGTERM)
+        assert rc == 0 and took < EXIT_S, took
+        svc.start()
+        with svc.client() as c:
+            again = c.job(job_id)
+            listed = c.jobs()
+        assert again.state == "done" and again.result == rec.result and again.transitions == rec.transitions
+        assert [j.job_id for j in listed.jobs] == [job_id] and listed.jobs[0].coverage_percent == r.coverage_percent
+        rc, took = svc.stop(signal.SIGINT)
+        assert rc == 0 and took < EXIT_S, took
+    finally:
+        svc.kill()
+
+
+def test_a_job_running_when_the_service_dies_is_interrupted(tmp_path):
+    svc = ServiceProcess(tmp_path).start()
+    try:
+        with svc.client() as c:
+            events = Events()
+            killed = c.submit(LONG, on_event=events).job_id
+            events.wait_for(lambda e: e.step == 0)
+        svc.proc.send_signal(signal.SIGKILL)
+        svc.proc.wait(10)
+        svc.start()
+        with svc.client() as c:
+            rec = c.job(killed)
+            assert rec.state == "interrupted" and "interrupted" in rec.error
+            assert [t.state for t in rec.transitions] == ["queued", "running", "interrupted"]
+            assert rec.progress.phase == "interrupted" and rec.progress.seq > events.items[-1].seq
+            # SIGTERM while a job runs: the scan stops, its partial result is kept, the process exits
+            events = Events()
+            stopped = c.submit(LONG, on_event=events).job_id
+            events.wait_for(lambda e: e.step == 0)
+        rc, took = svc.stop(signal.SIGTERM)
+        assert rc == 0 and took < EXIT_S, took
+        store = JobStore(svc.data_dir / "jobs.sqlite")
+        rec = store.get(stopped)
+        store.close()
+        assert rec.state == "interrupted" and rec.result is not None and rec.result.terminated_by == "cancelled"
+        assert "result.json" in rec.artifacts.files and "drawing.ply" in rec.artifacts.files
+    finally:
+        svc.kill()
+
+
+@pytest.mark.parametrize("payload, code", [
+    (b"{not json", "bad_json"),
+    (b"", "bad_json"),
+    (b'\xff\xfe{"scene": "smooth_cylinder"}', "bad_json"),
+    (b'{"scene": "smooth_cylinder", "planner": "astar"}', "invalid_request"),
+    (b'{"planner": "gnbv"}', "invalid_request"),
+    (b'{"scene": "smooth_cylinder", "max_steps": "2"}', "invalid_request"),
+    (b'{"scene": "smooth_cylinder", "speed": 2}', "invalid_request"),
+    (b'{"scene": "no_such_scene"}', "invalid_request"),
+    (b'{"scene": "nowhere/scene.yaml"}', "invalid_request"),
+    (b'{"scene": "smooth_cylinder", "schema_version": 9}', "unsupported_schema_version"),
+    (json.dumps({"scene": "smooth_cylinder", "requested_by": "x" * 100_000}).encode(), "payload_too_large"),
+])
+def test_invalid_submits_get_an_error_reply(cell, payload, code):
+    with cell.client() as c:
+        with pytest.raises(CellError) as e:
+            c.submit(payload)
+        assert e.value.code == code and e.value.message
+        assert c.status().cell_id == "sim-1"  # still serving
+
+
+def test_bad_keys_and_ids_get_an_error_reply(cell):
+    with cell.client() as c:
+        k = c.keys
+        for key, code in [(k.job("20250101T000000Z-abcdef"), "not_found"), (k.job("nonsense"), "not_found"),
+                          (k.cancel("20250101T000000Z-abcdef"), "not_found"), (k.jobs + "/*", "invalid_request"),
+                          (k.events("20250101T000000Z-abcdef"), "invalid_request"),
+                          (k.jobs + "/a/b/c", "invalid_request")]:
+            with pytest.raises(CellError) as e:
+                c._query(key, dict)
+            assert e.value.code == code, key
+        with pytest.raises(CellError) as e:
+            c._query(k.jobs, dict, b'{"limit": "all"}')
+        assert e.value.code == "invalid_request"
+        assert c.status().accepting_jobs
+
+
+def test_queue_full_then_cancel_queued_and_running(cell):
+    with cell.client() as c:
+        events = Events()
+        running = c.submit(LONG, on_event=events).job_id
+        events.wait_for(lambda e: e.step == 0)
+        queued = c.submit(LONG)
+        assert queued.queue_position == 1
+        with pytest.raises(CellError) as e:
+            c.submit(SHORT)
+        assert e.value.code == "queue_full"
+        st = c.status()
+        assert st.queue_length == 1 and st.running_job == running
+
+        assert c.cancel(queued.job_id).state == "cancelled"
+        assert c.job(queued.job_id).state == "cancelled"
+        t0 = time.perf_counter()
+        assert c.cancel(running, reason="test").state == "cancelling"
+        rec = c.wait(running, 60)
+        cancel_s = time.perf_counter() - t0
+        assert rec.state == "cancelled" and rec.result.terminated_by == "cancelled" and rec.result.steps >= 1
+        assert rec.result.cut is None
+        assert [t.state for t in rec.transitions] == ["queued", "running", "cancelling", "cancelled"]
+        assert rec.transitions[2].note == "cancel requested: test"
+        for name in ("result.json", "drawing.ply", "surface.ply", "scan.rrd"):
+            assert name in rec.artifacts.files, name
+        events.wait_for(lambda e: e.phase == "cancelled", 10)
+        assert "planning-cut" not in [e.phase for e in events.items]
+        assert cancel_s < 10, cancel_s
+
+        for job_id, code in [(running, "not_cancellable"), (queued.job_id, "not_cancellable")]:
+            with pytest.raises(CellError) as e:
+                c.cancel(job_id)
+            assert e.value.code == code
+        listed = c.jobs(limit=2)
+        assert [j.job_id for j in listed.jobs][:2] == [queued.job_id, running]
+        assert c.jobs(state="cancelled").total >= 2
+        assert c.status().queue_length == 0
+
+
+def test_cli_status_and_clear_no_reply(cell):
+    def cli(*args):
+        return subprocess.run([sys.executable, "-m", "cellctl.cli", *args], cwd=ROOT, capture_output=True,
+                              text=True, timeout=60)
+
+    ok = cli("status", "--cell", "sim-1", "--connect", cell.endpoint)
+    assert ok.returncode == 0 and "queue_length" in ok.stdout, ok.stderr
+    nobody = cli("status", "--cell", "other-cell", "--connect", cell.endpoint, "--reply-timeout", "1")
+    assert nobody.returncode == 3
+    assert "no reply" in nobody.stderr and "access control denied" in nobody.stderr
+    down = cli("jobs", "list", "--cell", "sim-1", "--connect", f"tcp/127.0.0.1:{free_port()}")
+    assert down.returncode == 3 and "cannot reach" in down.stderr, down.stderr
+
+
+def test_client_reports_no_reply_clearly(cell):
+    with CellClient("not-this-cell", [cell.endpoint], timeout_s=0.5) as c:
+        with pytest.raises(NoReply, match="the cell is down, or access control denied"):
+            c.status()
+        assert not c.alive(0.5)
+
+
+def test_a_job_over_its_timeout_fails_in_process(tmp_path):
+    """The service class in this process (same code as `serve`): the job timeout cancels the scan."""
+    from cellctl.config import load_cell_config
+    from cellctl.service import CellService
+    from cellctl.service_bench import write_config
+
+    port = free_port()
+    cfg, cfg_path = load_cell_config(write_config(tmp_path / "cell.yaml", port, tmp_path / "data", job_timeout_s=1.0))
+    svc = CellService(cfg, cfg_path)
+    svc.start()
+    try:
+        with CellClient("sim-1", [f"tcp/127.0.0.1:{port}"]) as c:
+            job_id = c.submit(LONG).job_id
+            rec = c.wait(job_id, 60)
+        assert rec.state == "failed" and rec.error.startswith("timeout:"), rec.error
+        assert "result.json" in rec.artifacts.files
+    finally:
+        svc.stop(10)
+        svc.close()
+
+
+def test_behind_a_router_with_access_control(tmp_path):
+    """The cell as a Zenoh client of a router (a Python session in router mode: no zenohd here) with
+    user/password authentication and access control: the operator may do everything, the viewer only
+    query status; the viewer's submit gets no reply at all, which the client reports as such."""
+    import zenoh
+
+    from cellctl.service_bench import write_config
+
+    port = free_port()
+    (tmp_path / "users.txt").write_text("cell:cell-pw\noperator:op-pw\nviewer:view-pw\n")
+    everything = ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable", "liveliness_token",
+                  "liveliness_query", "declare_liveliness_subscriber"]
+    router = zenoh.open(zenoh.Config.from_json5(json.dumps({
+        "mode": "router", "listen": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"auth": {"usrpwd": {"dictionary_file": str(tmp_path / "users.txt")}}},
+        "access_control": {
+            "enabled": True, "default_permission": "deny",
+            "rules": [{"id": "all", "messages": everything, "flows": ["ingress", "egress"], "permission": "allow",
+                       "key_exprs": ["cell/**"]},
+                      {"id": "status", "messages": ["query", "reply"], "flows": ["ingress", "egress"],
+                       "permission": "allow", "key_exprs": ["cell/*/status"]}],
+            "subjects": [{"id": "staff", "usernames": ["cell", "operator"]}, {"id": "view", "usernames": ["viewer"]}],
+            "policies": [{"rules": ["all"], "subjects": ["staff"]}, {"rules": ["status"], "subjects": ["view"]}]}})))
+
+    def creds(user: str, pw: str) -> str:
+        f = tmp_path / f"{user}.json5"
+        f.write_text(json.dumps({"transport": {"auth": {"usrpwd": {"user": user, "password": pw}}}}))
+        return str(f)
+
+    cfg = write_config(tmp_path / "cell.yaml", port, tmp_path / "data", zenoh_mode="client", listen=[],
+                       connect=[f"tcp/127.0.0.1:{port}"], zenoh_config_file=creds("cell", "cell-pw"))
+    proc = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "serve", "--config", str(cfg)], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert "client of tcp/127.0.0.1" in proc.stdout.readline()
+        ep = [f"tcp/127.0.0.1:{port}"]
+        with CellClient("sim-1", ep, timeout_s=2, zenoh_config_file=creds("operator", "op-pw")) as op:
+            deadline = time.monotonic() + 20
+            while not op.alive(0.5):
+                assert time.monotonic() < deadline, "the cell never appeared behind the router"
+            assert op.status().cell_id == "sim-1"
+            with pytest.raises(CellError, match="unknown scene"):
+                op.submit({"scene": "no_such_scene"})
+        with CellClient("sim-1", ep, timeout_s=2, zenoh_config_file=creds("viewer", "view-pw")) as viewer:
+            assert viewer.status().cell_id == "sim-1"
+            with pytest.raises(NoReply, match="access control denied"):
+                viewer.submit({"scene": "smooth_cylinder"})
+            with pytest.raises(NoReply):
+                viewer.jobs()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(EXIT_S) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        proc.stdout.close()
+        router.close()
+
+
+def test_service_bench_measures_latency(tmp_path):
+    from cellctl.service_bench import measure
+
+    m = measure(n=5, submits=2, workdir=tmp_path)
+    assert m["status_rtt_idle_ms"]["n"] == 5 and m["status_rtt_idle_ms"]["median"] < 1000
+    assert m["submit_to_first_event_ms"]["n"] == 2 and m["submit_to_first_event_idle_ms"] > 0
+    assert m["exit_status"] == 0 and m["sigterm_to_exit_s"] < EXIT_S
+
+
+def test_one_service_per_data_dir(cell):
+    """A second service on the same data dir would mark the first one's running job interrupted."""
+    second = subprocess.run([sys.executable, "-m", "cellctl.cli", "serve", "--config", str(cell.config), "--listen",
+                             f"tcp/127.0.0.1:{free_port()}"], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert second.returncode == 1 and "in use by another service" in second.stderr, second.stderr
+    with cell.client() as c:
+        assert c.status().accepting_jobs
