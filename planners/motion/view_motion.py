@@ -2,10 +2,10 @@
 
 The paper executes "the first viable" of its ranked views with MoveIt. Here a candidate is viable
 when IK finds a collision-free configuration for it and a Ruckig motion to that configuration
-stays clear of the floor, the robot itself and the scene as scanned so far, checked densely. A
-straight joint-space motion is tried first; when it collides, the motion goes via waypoints: the
-camera backed off along its optical axis at the start and/or before the goal, and last via the
-park configuration above the cell. The first candidate with a clear motion wins."""
+stays clear of the floor, the robot itself and the scene as scanned so far, checked densely. The
+candidates are first tried in rank order with a straight joint-space motion; only if none is clear do
+the best-ranked ones get waypoint routes: the camera backed off along its optical axis at the start
+and/or before the goal, and last via the park configuration above the cell. A time budget bounds it."""
 
 from __future__ import annotations
 
@@ -141,34 +141,53 @@ class ViewMotionPlanner:
         rejected = {"beyond reach": int((~in_reach).sum()), "no collision-free IK": 0, "motion collides": 0}
         start_blocked = not self._free(q_now)
         memo: dict = {}
-        t_ik = t_check = 0.0
-        first_hit: str | None = None
+        clock = {"ik": 0.0, "check": 0.0}
+        first_hit: list[str] = []
         t_start = time.perf_counter()
+
+        def over_budget() -> bool:
+            return time.perf_counter() - t_start > self.budget_s
+
+        def attempt(i: int, q_goal: np.ndarray, route: str) -> ViewMotion | None:
+            t0 = time.perf_counter()
+            wps = self._waypoints(route, q_now, q_goal, P[i], memo)
+            clock["ik"] += time.perf_counter() - t0
+            if wps is None:
+                return None
+            t0 = time.perf_counter()
+            ok = self._clear(path := self._path(wps), start_blocked)
+            clock["check"] += time.perf_counter() - t0
+            if ok:
+                return ViewMotion(int(i), q_goal, path, route, int(i) + 1, clock["ik"], clock["check"],
+                                  {k: v for k, v in rejected.items() if v})
+            if not first_hit and self.last_collision is not None:
+                first_hit.append(f"pose {i} ({route}): {self.last_collision}")
+            return None
+
+        # Pass 1, in rank order: IK and the straight motion (cheap, and most moves are straight).
+        # Pass 2, only if none is straight: waypoint routes for the best-ranked candidates with an IK
+        # solution, within the time budget.
+        solved: list[tuple[int, np.ndarray]] = []
         for n_tried, i in enumerate(np.flatnonzero(in_reach)):
-            if time.perf_counter() - t_start > self.budget_s:
+            if over_budget():
                 rejected["not tried (time budget)"] = int(in_reach.sum()) - n_tried
                 break
             t0 = time.perf_counter()
             q_goal = self._ik(P[i], q_now)
-            t_ik += time.perf_counter() - t0
+            clock["ik"] += time.perf_counter() - t0
             if q_goal is None:
                 rejected["no collision-free IK"] += 1
                 continue
-            for route in self._routes()[: None if n_tried < self.via_candidates else 1]:
-                t0 = time.perf_counter()
-                wps = self._waypoints(route, q_now, q_goal, P[i], memo)
-                t_ik += time.perf_counter() - t0
-                if wps is None:
-                    continue
-                t0 = time.perf_counter()
-                ok = self._clear(path := self._path(wps), start_blocked)
-                t_check += time.perf_counter() - t0
-                if ok:
-                    return ViewMotion(int(i), q_goal, path, route, int(i) + 1, t_ik, t_check,
-                                      {k: v for k, v in rejected.items() if v})
-                if first_hit is None and self.last_collision is not None:
-                    first_hit = f"pose {i} ({route}): {self.last_collision}"
-            rejected["motion collides"] += 1
+            if (mv := attempt(i, q_goal, "direct")) is not None:
+                return mv
+            solved.append((int(i), q_goal))
+        for i, q_goal in solved[: self.via_candidates]:
+            if over_budget():
+                break
+            for route in self._routes()[1:]:
+                if (mv := attempt(i, q_goal, route)) is not None:
+                    return mv
+        rejected["motion collides"] = len(solved)
         reasons = ", ".join(f"{v} {k}" for k, v in rejected.items() if v)
         raise Unreachable(f"none of {len(P)} candidate views has a collision-free motion ({reasons})"
-                          + (f"; first collision: {first_hit}" if first_hit else ""))
+                          + (f"; first collision: {first_hit[0]}" if first_hit else ""))
