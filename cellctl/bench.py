@@ -295,6 +295,8 @@ def cli_bench(args) -> int:
         for path in bench_report.write_report(doc, Path(args.report).parent):
             print(path)
         return 0
+    if getattr(args, "service", None) is not None:
+        return service_bench(args.service, Path(args.out) if args.out else default_out_dir())
     q = QUICK if args.quick else {}
     scenes = parse_list(args.scenes, SCENE_NAMES, "scenes", q.get("scenes", SCENE_NAMES))
     planners = parse_list(args.planners, DEFAULT_PLANNERS, "planners", q.get("planners", DEFAULT_PLANNERS))
@@ -315,3 +317,31 @@ def cli_bench(args) -> int:
     bench_report.write_report(doc, out)
     print(f"{summary_line(doc)}\n{out / 'bench.md'}")
     return 0 if not any(r["error"] for r in doc["runs"]) else 1
+
+
+def service_bench(n: int, out: Path) -> int:
+    """The service figure: status round trip and submit-to-first-event latency of a real `cellctl
+    serve` on loopback (cellctl.service_bench), medians, written to OUT/service.json and service.md."""
+    from cellctl.service_bench import measure
+
+    if n < 1:
+        raise ValueError("--service N must be >= 1")
+    out.mkdir(parents=True, exist_ok=True)
+    r = measure(n)
+    doc = {"schema_version": 1, "created": datetime.now().astimezone().isoformat(timespec="seconds"),
+           "machine": machine_info(), "code": code_info(), "service": r}
+    write_json(out / "service.json", doc)
+
+    def row(name, st):
+        return f"| {name} | {st['median']:.2f} | {st['p90']:.2f} | {st['max']:.2f} | {st['n']} |" if st else f"| {name} | – | – | – | 0 |"
+    md = ["# Service latency on loopback", "", f"- created {doc['created']}; {doc['machine']['cpus']} CPUs; "
+          f"service start-up {r.get('service_startup_s')} s; SIGTERM to exit {r.get('sigterm_to_exit_s')} s", "",
+          "| figure (ms) | median | p90 | max | n |", "|---|--:|--:|--:|--:|",
+          row("status round trip, cell idle", r.get("status_rtt_idle_ms")),
+          row("status round trip, during a scan", r.get("status_rtt_busy_ms")),
+          row("submit to first event, during a scan", r.get("submit_to_first_event_ms")), "",
+          f"Submit to first event with the cell idle: {r.get('submit_to_first_event_idle_ms')} ms; submit to the "
+          f"first exploration step (twin built, first view): {r.get('job_start_ms')} ms.", ""]
+    (out / "service.md").write_text("\n".join(md))
+    print("\n".join(md))
+    return 0

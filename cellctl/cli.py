@@ -222,6 +222,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="smooth_cylinder,round_tank x gnbv,enpv x 1 seed (explicit options still win)")
     b.add_argument("--config", default=None, help="cell config YAML (default: configs/cell.sim.yaml)")
     b.add_argument("--no-memory", action="store_true", help="do not trace allocations (tracemalloc) during runs")
+    b.add_argument("--service", type=int, nargs="?", const=100, default=None, metavar="N",
+                   help="instead of scans: the job API's latency on loopback (N status queries, default 100)")
     b.add_argument("--report", default=None, metavar="BENCH_JSON",
                    help="only rewrite bench.md and the plots next to this bench.json, no scans")
     b.set_defaults(func=_bench)

@@ -36,6 +36,21 @@ class ScanRecorder:
                                                        albedo_factor=[150, 150, 150, 90]), static=True)
         self.rec.log("world/truth/drawing", rr.Points3D(gt_points, colors=[255, 200, 0], radii=0.001), static=True)
 
+    def log_robot_geometry(self, robot) -> None:
+        """The arm as its collision hulls (what the planner keeps clear), one entity per link; the
+        link transforms follow per view (log_robot_pose)."""
+        for part in robot.parts:
+            self.rec.log(f"world/robot/{part.link}/{part.name.replace('#', '_')}",
+                         rr.Mesh3D(vertex_positions=part.vertices, triangle_indices=part.faces,
+                                   albedo_factor=[235, 235, 240, 200] if not part.tool else [40, 40, 40, 230]),
+                         static=True)
+
+    def log_robot_pose(self, step: int, links: tuple[str, ...], poses: np.ndarray) -> None:
+        rec = self.rec
+        rec.set_time("step", sequence=step)
+        for link, T in zip(links, poses):  # ~10 links
+            rec.log(f"world/robot/{link}", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+
     def log_view(self, step: int, T_base_cam: np.ndarray, K: np.ndarray, size: tuple[int, int],
                  color: np.ndarray, depth: np.ndarray, cloud_xyz: np.ndarray, cloud_rgb: np.ndarray) -> None:
         rec = self.rec

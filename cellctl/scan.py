@@ -114,6 +114,8 @@ class ScanJob:
         self.kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
         self.robot = RobotCollisionModel.from_arm_model(m, mcfg.collision)
         self.checker = CollisionChecker(self.robot, mcfg.collision) if mcfg.check_collisions else None
+        if recorder is not None:
+            recorder.log_robot_geometry(self.robot)
         park = mcfg.park_q if mcfg.park_q is not None else park_q
         self.motion = ViewMotionPlanner(self.kin, m.max_velocity, m.max_acceleration, m.max_jerk, self.checker,
                                         speed_factor=mcfg.speed_factor, ik_margin_rad=mcfg.ik_margin_rad,
@@ -273,6 +275,7 @@ class ScanJob:
             res.records.append(rec)
             res.capture_s += rec.capture_s
             if self.recorder:
+                self.recorder.log_robot_pose(k, self.robot.links, self.robot.link_poses(q))
                 self.recorder.log_view(k, T, self.K, self.image_size, frame.color, frame.depth, cloud.xyz, cloud.rgb)
                 self.recorder.log_plan(k, plan.frontier, self.grid.voxel, plan.poses, plan.quality, plan.target,
                                        self.drawing.xyz)

@@ -41,11 +41,16 @@ def test_gnbv_covers_the_drawing(cell, scene, tmp_path):
     ok = subprocess.run([str(rerun_cli), "rrd", "verify", str(run_dir / "scan.rrd")], capture_output=True, text=True,
                         timeout=120)
     assert ok.returncode == 0, ok.stderr
-    dump = subprocess.run([str(rerun_cli), "rrd", "print", str(run_dir / "scan.rrd")], capture_output=True,
-                          text=True, timeout=120).stdout
-    for entity in ("/world/captures/0", "/world/camera/image", "/world/frontier", "/world/viewpoints",
-                   "/world/drawing", "/world/candidates"):
-        assert entity in dump, entity
+    # read back with Rerun's own API: the entities an operator expects to find
+    from rerun.chunk import RrdReader
+
+    store = RrdReader(run_dir / "scan.rrd").store()
+    paths = set(store.schema().entity_paths())
+    for entity in ("/world/captures/0", "/world/camera/image", "/world/camera/image/rgb", "/world/frontier",
+                   "/world/viewpoints", "/world/view_path", "/world/drawing", "/world/candidates",
+                   "/world/robot/panda_hand", "/world/robot/panda_link4", "/world/cut/branch0", "/world/truth/object"):
+        assert entity in paths, (entity, sorted(paths))
+    assert any(p.startswith("/world/robot/panda_hand/") for p in paths)  # the hand's geometry under its transform
     saved = json.loads((run_dir / "result.json").read_text())
     assert saved["coverage_percent"] == result.coverage_percent and saved["steps"] == result.steps
     assert len(saved["viewpoints"]) == result.steps
