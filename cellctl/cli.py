@@ -273,7 +273,20 @@ def build_parser() -> argparse.ArgumentParser:
     st = sub.add_parser("status", help="a cell's health: arm, camera, queue, running job")
     _client_args(st)
     st.set_defaults(func=_status)
+    r = sub.add_parser("router", help="run a Zenoh router for the yard (cells and tablets connect to it)")
+    r.add_argument("--config", default=None, help="router JSON5 config (default: deploy/zenoh/router.json5)")
+    r.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
+                   help="listen endpoint, e.g. tcp/127.0.0.1:7447 (repeatable; default: the config's)")
+    r.add_argument("--users", default=None, help="user:password file (default: the config's dictionary_file)")
+    r.set_defaults(func=_router)
     return p
+
+
+def _router(args: argparse.Namespace) -> int:
+    from cellctl.router import main as router_main
+
+    argv = (["--config", args.config] if args.config else []) + [a for e in (args.listen or []) for a in ("--listen", e)]
+    return router_main(argv + (["--users", args.users] if args.users else []))
 
 
 def main(argv: list[str] | None = None) -> int:

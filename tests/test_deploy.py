@@ -43,10 +43,11 @@ def answered(session, key: str) -> bool:
 @pytest.fixture(scope="module")
 def router(tmp_path_factory):
     d = tmp_path_factory.mktemp("deploy")
-    subprocess.run(["sh", str(ROOT / "deploy/make-users.sh"), str(d), "operator", "viewer", f"cell-{CELL}"],
-                   check=True, capture_output=True, timeout=30)
-    pw = {u: (d / f"{u}.password").read_text().strip() for u in ("operator", "viewer", f"cell-{CELL}")}
-    assert len(set(pw.values())) == 3 and all(len(p) >= 16 for p in pw.values())
+    users = ("operator", "viewer", f"cell-{CELL}", "cell-sim-2")
+    subprocess.run(["sh", str(ROOT / "deploy/make-users.sh"), str(d), *users], check=True, capture_output=True,
+                   timeout=30)
+    pw = {u: (d / f"{u}.password").read_text().strip() for u in users}
+    assert len(set(pw.values())) == len(users) and all(len(p) >= 16 for p in pw.values())
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     proc = subprocess.Popen([sys.executable, "-m", "cellctl.router", "--config", str(ROOT / "deploy/zenoh/router.json5"),
                              "--listen", endpoint, "--users", str(d / "zenoh-users.txt")],
@@ -65,26 +66,63 @@ def router(tmp_path_factory):
                 pytest.fail("the router did not exit within 10 s of SIGTERM")
 
 
-def test_access_control_lets_operators_command_and_viewers_only_read(router):
+def _creds(tmp: Path, user: str, password: str) -> str:
+    f = tmp / f"{user}.json5"
+    f.write_text(json.dumps({"transport": {"auth": {"usrpwd": {"user": user, "password": password}}}}))
+    return str(f)
+
+
+def test_two_cells_behind_the_router_one_operator_and_a_viewer(router, tmp_path):
+    """The yard: `cellctl router` with deploy/'s auth and ACL, two real cell services (ids sim-1 and
+    sim-2) as its clients, one operator client driving both, and a viewer who may read but whose
+    submit and cancel get no reply."""
+    from cellctl.api import ScanDrawingRequest
+    from cellctl.client import CellClient, NoReply
+    from cellctl.service_bench import write_config
+
     endpoint, pw, _ = router
-    cell = client(endpoint, f"cell-{CELL}", pw[f"cell-{CELL}"])
-    op = viewer = None
+    cells = {}
     try:
-        keys = [f"cell/{CELL}/status", f"cell/{CELL}/jobs/submit", f"cell/{CELL}/jobs/j1/cancel", f"cell/{CELL}/jobs/j1"]
-        queryables = [cell.declare_queryable(k, lambda q: q.reply(q.key_expr, b"{}")) for k in keys]
-        op = client(endpoint, "operator", pw["operator"])
-        viewer = client(endpoint, "viewer", pw["viewer"])
-        time.sleep(0.5)  # declarations reach the router
-        status, submit, cancel, record = keys
-        assert all(answered(op, k) for k in keys)
-        assert answered(viewer, status) and answered(viewer, record)
-        assert not answered(viewer, submit) and not answered(viewer, cancel)  # denied = no reply
-        for qb in queryables:
-            qb.undeclare()
+        for cid in (CELL, "sim-2"):
+            user = f"cell-{cid}"
+            cfg = write_config(tmp_path / f"{cid}.yaml", free_port(), tmp_path / f"data-{cid}", cell_id=cid,
+                               zenoh_mode="client", listen=[], connect=[endpoint],
+                               zenoh_config_file=_creds(tmp_path, user, pw[user]))
+            cells[cid] = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "serve", "--config", str(cfg)],
+                                          cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        op_creds = _creds(tmp_path, "operator", pw["operator"])
+        with CellClient(CELL, [endpoint], timeout_s=3, zenoh_config_file=op_creds) as c1, \
+                CellClient("sim-2", [endpoint], timeout_s=3, zenoh_config_file=op_creds) as c2:
+            for c in (c1, c2):
+                deadline = time.monotonic() + 30
+                while not c.alive(0.5):
+                    assert time.monotonic() < deadline, f"cell {c.cell_id} never appeared behind the router"
+            req = ScanDrawingRequest(scene="smooth_cylinder", max_steps=1, noise=False)
+            jobs = {c.cell_id: c.submit(req).job_id for c in (c1, c2)}
+            for c in (c1, c2):
+                rec = c.wait(jobs[c.cell_id], 180)
+                assert rec.state == "done", (c.cell_id, rec.state, rec.error)
+                assert c.status().cell_id == c.cell_id
+        with CellClient("sim-2", [endpoint], timeout_s=3, zenoh_config_file=op_creds) as c2:
+            listed = c2.jobs()
+            assert listed.cell_id == "sim-2" and [j.job_id for j in listed.jobs] == [jobs["sim-2"]]  # its own only
+        viewer_creds = _creds(tmp_path, "viewer", pw["viewer"])
+        with CellClient(CELL, [endpoint], timeout_s=2, zenoh_config_file=viewer_creds) as v:
+            assert v.status().cell_id == CELL
+            assert v.job(jobs[CELL]).state == "done"  # records are readable
+            with pytest.raises(NoReply, match="access control"):
+                v.submit(req)
+            with pytest.raises(NoReply):
+                v.cancel(jobs[CELL])
     finally:
-        for s in (op, viewer, cell):
-            if s is not None:
-                s.close()
+        for cid, proc in cells.items():
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+                try:
+                    assert proc.wait(timeout=20) == 0, cid
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    pytest.fail(f"cell {cid} did not exit within 20 s of SIGTERM")
 
 
 @pytest.mark.parametrize("user,password", [("operator", "not-the-password"), (None, None), ("intruder", "x")])

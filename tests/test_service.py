@@ -246,66 +246,6 @@ def test_a_job_over_its_timeout_fails_in_process(tmp_path):
         svc.close()
 
 
-def test_behind_a_router_with_access_control(tmp_path):
-    """The cell as a Zenoh client of a router (a Python session in router mode: no zenohd here) with
-    user/password authentication and access control: the operator may do everything, the viewer only
-    query status; the viewer's submit gets no reply at all, which the client reports as such."""
-    import zenoh
-
-    from cellctl.service_bench import write_config
-
-    port = free_port()
-    (tmp_path / "users.txt").write_text("cell:cell-pw\noperator:op-pw\nviewer:view-pw\n")
-    everything = ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable", "liveliness_token",
-                  "liveliness_query", "declare_liveliness_subscriber"]
-    router = zenoh.open(zenoh.Config.from_json5(json.dumps({
-        "mode": "router", "listen": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
-        "scouting": {"multicast": {"enabled": False}},
-        "transport": {"auth": {"usrpwd": {"dictionary_file": str(tmp_path / "users.txt")}}},
-        "access_control": {
-            "enabled": True, "default_permission": "deny",
-            "rules": [{"id": "all", "messages": everything, "flows": ["ingress", "egress"], "permission": "allow",
-                       "key_exprs": ["cell/**"]},
-                      {"id": "status", "messages": ["query", "reply"], "flows": ["ingress", "egress"],
-                       "permission": "allow", "key_exprs": ["cell/*/status"]}],
-            "subjects": [{"id": "staff", "usernames": ["cell", "operator"]}, {"id": "view", "usernames": ["viewer"]}],
-            "policies": [{"rules": ["all"], "subjects": ["staff"]}, {"rules": ["status"], "subjects": ["view"]}]}})))
-
-    def creds(user: str, pw: str) -> str:
-        f = tmp_path / f"{user}.json5"
-        f.write_text(json.dumps({"transport": {"auth": {"usrpwd": {"user": user, "password": pw}}}}))
-        return str(f)
-
-    cfg = write_config(tmp_path / "cell.yaml", port, tmp_path / "data", zenoh_mode="client", listen=[],
-                       connect=[f"tcp/127.0.0.1:{port}"], zenoh_config_file=creds("cell", "cell-pw"))
-    proc = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "serve", "--config", str(cfg)], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        assert "client of tcp/127.0.0.1" in proc.stdout.readline()
-        ep = [f"tcp/127.0.0.1:{port}"]
-        with CellClient("sim-1", ep, timeout_s=2, zenoh_config_file=creds("operator", "op-pw")) as op:
-            deadline = time.monotonic() + 20
-            while not op.alive(0.5):
-                assert time.monotonic() < deadline, "the cell never appeared behind the router"
-            assert op.status().cell_id == "sim-1"
-            with pytest.raises(CellError, match="unknown scene"):
-                op.submit({"scene": "no_such_scene"})
-        with CellClient("sim-1", ep, timeout_s=2, zenoh_config_file=creds("viewer", "view-pw")) as viewer:
-            assert viewer.status().cell_id == "sim-1"
-            with pytest.raises(NoReply, match="access control denied"):
-                viewer.submit({"scene": "smooth_cylinder"})
-            with pytest.raises(NoReply):
-                viewer.jobs()
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(EXIT_S) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
-        proc.stdout.close()
-        router.close()
-
-
 def test_service_bench_measures_latency(tmp_path):
     """`cellctl bench --service N`: a real service on loopback, figures in service.json/.md."""
     proc = subprocess.run([sys.executable, "-m", "cellctl.cli", "bench", "--service", "5", "--out", str(tmp_path)],
