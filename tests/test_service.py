@@ -15,7 +15,6 @@ from pathlib import Path
 import pytest
 
 from cellctl.client import CellClient, CellError, NoReply
-from cellctl.service_bench import ROOT
 from cellctl.service_bench import ROOT, ServiceProcess, free_port
 from cellctl.store import JobStore
 
