@@ -44,7 +44,8 @@ def _serve(args: argparse.Namespace) -> int:
 def _client(args: argparse.Namespace):
     from cellctl.client import CellClient
 
-    return CellClient(args.cell, args.connect or ["tcp/127.0.0.1:7447"], timeout_s=args.reply_timeout)
+    return CellClient(args.cell, args.connect or ["tcp/127.0.0.1:7447"], timeout_s=args.reply_timeout,
+                      zenoh_config_file=args.zenoh_config)
 
 
 def _remote(fn):
@@ -193,6 +194,8 @@ def _client_args(p: argparse.ArgumentParser) -> None:
                    help="Zenoh endpoint of the cell or its router (default: tcp/127.0.0.1:7447; repeatable)")
     p.add_argument("--reply-timeout", type=float, default=5.0, metavar="S",
                    help="seconds to wait for a reply (default: 5); no reply = cell down or access denied")
+    p.add_argument("--zenoh-config", default=None, metavar="JSON5",
+                   help="Zenoh client config with your credentials (transport/auth/usrpwd) for a yard router")
 
 
 def build_parser() -> argparse.ArgumentParser:

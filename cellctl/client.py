@@ -64,7 +64,10 @@ class CellClient:
                  timeout_s: float = 5.0, mode: str = "client", zenoh_config_file: str | None = None):
         self.keys = Keys(cell_id)
         self.cell_id, self.timeout_s, self.connect = cell_id, timeout_s, list(connect)
-        conf = zenoh.Config.from_file(zenoh_config_file) if zenoh_config_file else zenoh.Config()
+        try:
+            conf = zenoh.Config.from_file(zenoh_config_file) if zenoh_config_file else zenoh.Config()
+        except zenoh.ZError as e:
+            raise ValueError(f"Zenoh config {zenoh_config_file}: {zenoh_error(e)}") from None
         conf.insert_json5("mode", json.dumps(mode))
         if self.connect:
             conf.insert_json5("connect/endpoints", json.dumps(self.connect))
