@@ -298,6 +298,21 @@ def test_unknown_near_occupied_from_a_grid(robot):
     assert ch_off.scene_voxels == len(occ)
 
 
+def test_unknown_in_the_object_box_counts_when_asked():
+    """object_box_m: a part nobody has seen yet, 10 cm from any seen surface, is inside the box around
+    the seen object, so it is solid; with the option off only the 5 cm shell is."""
+    g = OccupancyGrid(GridConfig(lo_m=(0, 0, 0), hi_m=(0.4, 0.4, 0.4), voxel_m=VOXEL))
+    g.logodds[:] = -1.0  # all seen free ...
+    g.logodds[10:30, 10:12, 5:20] = 2.0  # ... but a seen plate
+    g.logodds[10:30, 20:30, 5:25] = 0.0  # and an unseen block 8 cm behind it
+    far = g.centers(np.array([[20, 25, 22]]))[0]
+    _, shell = grid_scene_voxels(g, 0.05)
+    assert len(shell) == 0  # the unseen block is 8 cm behind the plate: out of the 5 cm shell
+    _, boxed = grid_scene_voxels(g, 0.05, object_box_m=0.15)
+    assert np.min(np.linalg.norm(boxed - far, axis=1)) < 1e-9
+    assert np.all(boxed[:, 1] <= g.centers(np.array([[0, 11 + 15, 0]]))[0, 1] + 1e-9)  # the box, not the grid
+
+
 # ---------------------------------------------------------------------------- pybullet
 
 

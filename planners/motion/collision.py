@@ -78,6 +78,8 @@ class CollisionConfig(BaseModel):
     unknown_as_occupied: count unknown cells near occupied ones as obstacles (the inside and the
         unseen back of an object are unknown; the arm must not go there).
     unknown_near_m: how far (centre to centre) from an occupied cell an unknown cell still counts.
+    object_box_m: > 0: every unknown cell in the box of the object seen so far, grown by this much
+        sideways and upwards, counts too (parts not seen yet); 0: off.
     floor_margin_m: clearance above the floor plane z = 0 of the robot base frame.
     camera_box_m: D435 housing (x, y, z) in the camera optical frame: the long side along the
         camera x axis, centred on the optical frame origin.
@@ -90,6 +92,7 @@ class CollisionConfig(BaseModel):
     margin_m: float = Field(0.02, ge=0, le=0.2)
     unknown_as_occupied: bool = True
     unknown_near_m: float = Field(0.05, ge=0, le=0.5)
+    object_box_m: float = Field(0.0, ge=0, le=1.0)
     floor_margin_m: float = Field(0.02, ge=0, le=0.5)
     camera_box_m: tuple[_Size, _Size, _Size] = (0.09, 0.025, 0.025)
     self_collision: bool = True
@@ -564,9 +567,26 @@ def densify_joint_path(Q: np.ndarray, max_joint_step_rad: float) -> tuple[np.nda
 # ---------------------------------------------------------------------------------------- scene
 
 
-def grid_scene_voxels(grid, unknown_near_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """(occupied centres (N, 3), unknown centres within ``unknown_near_m`` of an occupied cell (M, 3))
-    of an ``OccupancyGrid``: the unknown inside and behind an object is as solid as its surface.
+def _object_box_unknown(grid, ijk: np.ndarray, margin_m: float, floor_m: float = 0.03) -> np.ndarray:
+    """Unknown cells (K, 3) in the box around the object seen so far (its occupied cells above the
+    floor, grown by ``margin_m`` sideways and upwards, down to the floor): a part no view has seen
+    yet (the far end of a T-piece) is somewhere in there."""
+    obj = ijk[grid.centers(ijk)[:, 2] > floor_m]
+    if len(obj) == 0 or margin_m <= 0:
+        return np.empty((0, 3), dtype=np.int64)
+    m = int(math.ceil(margin_m / grid.voxel))
+    lo = np.maximum(obj.min(axis=0) - m, 0)
+    lo[2] = 0
+    hi = np.minimum(obj.max(axis=0) + m + 1, grid.shape)
+    box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
+    return np.argwhere(grid.unknown[box]) + lo
+
+
+def grid_scene_voxels(grid, unknown_near_m: float, object_box_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(occupied centres (N, 3), unknown centres (M, 3) that count as solid) of an ``OccupancyGrid``:
+    the unknown within ``unknown_near_m`` of an occupied cell (the inside and back of an object are as
+    solid as its surface) and, with ``object_box_m`` > 0, every unknown cell of the object's box
+    grown by that margin.
 
     Works on the occupied cells' bounding box grown by the distance only."""
     near = float(unknown_near_m)
@@ -577,9 +597,10 @@ def grid_scene_voxels(grid, unknown_near_m: float) -> tuple[np.ndarray, np.ndarr
     if len(ijk) == 0:
         return np.empty((0, 3)), np.empty((0, 3))
     occupied = grid.centers(ijk)
+    in_box = _object_box_unknown(grid, ijk, float(object_box_m))
     r = int(math.floor(near / grid.voxel + 1e-9))
     if r == 0:
-        return occupied, np.empty((0, 3))
+        return occupied, grid.centers(in_box)
     lo = np.maximum(ijk.min(axis=0) - r, 0)
     hi = np.minimum(ijk.max(axis=0) + r + 1, grid.shape)
     box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
@@ -588,10 +609,13 @@ def grid_scene_voxels(grid, unknown_near_m: float) -> tuple[np.ndarray, np.ndarr
     cube = ndimage.maximum_filter(occ[box], size=2 * r + 1, mode="constant", cval=False)
     cand = np.argwhere(cube & grid.unknown[box]) + lo
     if len(cand) == 0:
-        return occupied, np.empty((0, 3))
+        return occupied, grid.centers(in_box)
     reach = near / grid.voxel + 1e-9  # in cells, centre to centre
     dist, _ = cKDTree(ijk).query(cand, distance_upper_bound=reach)
-    return occupied, grid.centers(cand[dist <= reach])
+    solid = cand[dist <= reach]
+    if len(in_box):
+        solid = np.unique(np.concatenate([solid, in_box]), axis=0)
+    return occupied, grid.centers(solid)
 
 
 # ---------------------------------------------------------------------------------------- checker
@@ -675,7 +699,7 @@ class CollisionChecker:
     def set_scene_from_grid(self, grid) -> None:
         """Scene from an ``OccupancyGrid``: its occupied cells and the unknown ones near them."""
         near = self.cfg.unknown_near_m if self.cfg.unknown_as_occupied else 0.0
-        occ, unk = grid_scene_voxels(grid, near)
+        occ, unk = grid_scene_voxels(grid, near, self.cfg.object_box_m if self.cfg.unknown_as_occupied else 0.0)
         self.set_scene(occ, grid.voxel, unk)
 
     def clear_scene(self) -> None:
