@@ -14,6 +14,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 SCHEMA_VERSION = 1
 MAX_PAYLOAD_BYTES = 64 * 1024  # a request is a few hundred bytes; anything near this is a bug or an attack
+# the cell's Zenoh transport drops a (defragmented) message over this before the service sees it: no query,
+# however large, makes the cell buffer more (Zenoh's default is 1 GiB)
+MAX_MESSAGE_BYTES = 1024 * 1024
 LIST_LIMIT_MAX = 200
 
 CELL_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
@@ -92,8 +95,8 @@ class ScanDrawingRequest(ApiModel):
     seed: int | None = Field(None, ge=0, le=2**31 - 1, description="twin sensor noise seed (default: the config's)")
     noise: bool = Field(True, description="twin: simulate the D435 depth noise")
     dry_run_cut: bool = Field(False, description="twin: run the cutting path with the torch off and measure the tip")
-    requested_by: str | None = Field(None, pattern=r"^[\w .@-]{1,64}$", description="operator or tablet name, "
-                                     "kept in the job record")
+    requested_by: str | None = Field(None, pattern=r"^[\w .@-]{1,64}$", max_length=64,
+                                     description="operator or tablet name, kept in the job record")
 
 
 class ListJobsRequest(ApiModel):
@@ -317,7 +320,7 @@ def parse_payload(raw: bytes | None, model: type[M], *, required: bool = True) -
     if not isinstance(obj, dict):
         raise ApiError("invalid_request", f"expected a JSON object, got {type(obj).__name__}")
     version = obj.get("schema_version", SCHEMA_VERSION)
-    if version != SCHEMA_VERSION or isinstance(version, bool):
+    if type(version) is not int or version != SCHEMA_VERSION:  # strict: not true, 1.0 or "1"
         raise ApiError("unsupported_schema_version",
                        f"schema_version {json.dumps(version)[:40]} is not supported; this cell speaks {SCHEMA_VERSION}")
     try:

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import zenoh
 
-from cellctl.api import (ApiError, Artifacts, CancelReply, CancelRequest, CellStatus, JobEvent, JobList, Keys,
-                         ListJobsRequest, Progress, ResultSummary, ScanDrawingRequest, SubmitReply, dumps,
+from cellctl.api import (MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, ApiError, Artifacts, CancelReply, CancelRequest,
+                         CellStatus, JobEvent, JobList, Keys, ListJobsRequest, Progress, ResultSummary, ScanDrawingRequest, SubmitReply, dumps,
                          parse_payload)
 from cellctl.artifacts import _default as _json_default
 from cellctl.client import zenoh_error
@@ -65,6 +65,7 @@ def zenoh_config(scfg: ServiceConfig, cfg_dir: Path, *, listen: list[str] | None
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
     if listen or connect:
         conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("transport/link/rx/max_message_size", str(MAX_MESSAGE_BYTES))  # a huge query is dropped
     return conf
 
 
@@ -219,8 +220,9 @@ class CellService:
         key = str(query.key_expr)
         try:
             raw = query.payload
-            if raw is not None and len(raw) > 1 << 20:  # don't even copy it
-                raise ApiError("payload_too_large", f"payload is {len(raw)} bytes")
+            if raw is not None and len(raw) > MAX_PAYLOAD_BYTES:  # every key, before copying it
+                raise ApiError("payload_too_large", f"payload is {len(raw)} bytes; at most {MAX_PAYLOAD_BYTES} are "
+                               f"accepted")
             reply = handle(raw.to_bytes() if raw is not None else None)
             query.reply(key, dumps(reply), encoding=JSON)
         except ApiError as e:
