@@ -12,9 +12,9 @@ import sys
 from pydantic import BaseModel
 
 from cellctl import api
-from cellctl.api import (ERROR_CODES, MAX_PAYLOAD_BYTES, SCHEMA_VERSION, Artifacts, CancelReply, CancelRequest,
-                         CellStatus, CutPathSummary, DryRunSummary, ErrorDetail, ErrorReply, JobBrief, JobEvent,
-                         JobList, JobRecord, ListJobsRequest, Progress, ResultSummary, ScanDrawingRequest,
+from cellctl.api import (ERROR_CODES, MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, SCHEMA_VERSION, Artifacts, CancelReply,
+                         CancelRequest, CellStatus, CutPathSummary, DryRunSummary, ErrorDetail, ErrorReply, JobBrief,
+                         JobEvent, JobList, JobRecord, ListJobsRequest, Progress, ResultSummary, ScanDrawingRequest,
                          SubmitReply, Transition)
 
 J = "20250314T101500Z-3f9a1c"  # example job id
@@ -167,7 +167,8 @@ command line: `cellctl submit|jobs|status --cell <cell_id> --connect <endpoint>`
 
 Any query can instead get an **error reply** (Zenoh `reply_err`) with an [ErrorReply](#errorreply) payload.
 Queries on `{k}/jobs/**` must use exact keys (no `*`/`**`): a wildcard gets `invalid_request`. Payloads over
-{MAX_PAYLOAD_BYTES} bytes get `payload_too_large`.
+{MAX_PAYLOAD_BYTES} bytes get `payload_too_large` on every key (including those that ignore their payload); a
+query over {MAX_MESSAGE_BYTES} bytes is dropped by the cell's Zenoh transport and gets no reply.
 
 ### Submit: `{k}/jobs/submit`
 

@@ -25,8 +25,8 @@ from pathlib import Path
 import zenoh
 
 from cellctl.api import (MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, ApiError, Artifacts, CancelReply, CancelRequest,
-                         CellStatus, JobEvent, JobList, Keys, ListJobsRequest, Progress, ResultSummary, ScanDrawingRequest, SubmitReply, dumps,
-                         parse_payload)
+                         CellStatus, JobEvent, JobList, Keys, ListJobsRequest, Progress, ResultSummary,
+                         ScanDrawingRequest, SubmitReply, dumps, parse_payload)
 from cellctl.artifacts import _default as _json_default
 from cellctl.client import zenoh_error
 from cellctl.config import CellConfig, ServiceConfig
