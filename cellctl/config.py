@@ -24,7 +24,7 @@ class MotionConfig(BaseModel):
     self_filter_pad_m: float = Field(0.02, ge=0, le=0.2, description="drop returns this close to the arm's "
                                      "own collision hulls (0: keep them)")
     via_candidates: int = Field(8, ge=0, le=1000, description="best-ranked views that may be reached via waypoints")
-    motion_budget_s: float = Field(5.0, gt=0, le=120, description="motion planning time per target before it is "
+    motion_budget_s: float = Field(60.0, gt=0, le=600, description="safety net: motion planning time per target before it is "
                                    "given up")
     retract_m: float = Field(0.10, ge=0, le=0.5, description="back-off along the optical axis for via waypoints")
     park_q: tuple[float, float, float, float, float, float, float] | None = Field(

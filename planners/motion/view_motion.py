@@ -49,7 +49,7 @@ class ViewMotionPlanner:
     def __init__(self, kin: Kinematics, max_velocity, max_acceleration, max_jerk, checker: CollisionChecker | None,
                  *, speed_factor: float = 0.5, ik_margin_rad: float = 0.05, ik_seeds: int = 6,
                  retract_m: float = 0.10, park_q: np.ndarray | None = None, max_joint_step_rad: float = math.radians(1.0),
-                 max_tcp_step_m: float = 0.01, via_candidates: int = 8, budget_s: float = 5.0):
+                 max_tcp_step_m: float = 0.01, via_candidates: int = 8, budget_s: float = 60.0):
         if not (math.isfinite(retract_m) and 0 <= retract_m <= 0.5):
             raise ValueError(f"retract_m must be in [0, 0.5] m, got {retract_m!r}")
         self.kin, self.checker = kin, checker
@@ -59,7 +59,8 @@ class ViewMotionPlanner:
         self.park_q = None if park_q is None else kin._vec(park_q, "park_q")
         self.step_rad, self.step_m = max_joint_step_rad, max_tcp_step_m
         # Waypoint routes cost several IK solves and path checks each: only the best-ranked candidates
-        # get them, and a target whose views all turn out blocked is given up after budget_s.
+        # get them. budget_s is a safety net only: a tight wall-clock budget (5 s was tried) made a
+        # scan's outcome depend on the machine's load.
         self.via_candidates, self.budget_s = int(via_candidates), float(budget_s)
         self.last_collision: Collision | None = None
 
