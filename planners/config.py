@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
-from scipy.spatial.transform import Rotation
 
 from configs.loading import load_yaml_model as _load_yaml_model
+from configs.poses import pose_from_xyz_rpy_deg
 
 
 class _Strict(BaseModel):
@@ -136,10 +136,7 @@ class TorchConfig(_Strict):
 
     def T_flange_torch(self) -> np.ndarray:
         """4x4 torch-tip frame in the flange frame: pass it as Kinematics' T_flange_cam."""
-        T = np.eye(4)
-        T[:3, :3] = Rotation.from_euler("xyz", self.rpy_deg, degrees=True).as_matrix()
-        T[:3, 3] = self.xyz_m
-        return T
+        return pose_from_xyz_rpy_deg(self.xyz_m, self.rpy_deg)
 
     def T_flange_mount(self) -> np.ndarray:
         """4x4 frame at the torch's back end, same axes as the tip frame: the cylinder spans

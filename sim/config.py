@@ -8,7 +8,8 @@ from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
-from scipy.spatial.transform import Rotation
+
+from configs.poses import pose_from_xyz_rpy_deg
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
 
@@ -78,10 +79,7 @@ class HandEyeConfig(BaseModel):
 
     def T_flange_cam(self) -> np.ndarray:
         """4x4 float64 T_flange_cam."""
-        T = np.eye(4)
-        T[:3, :3] = Rotation.from_euler("xyz", self.rpy_deg, degrees=True).as_matrix()
-        T[:3, 3] = self.xyz
-        return T
+        return pose_from_xyz_rpy_deg(self.xyz, self.rpy_deg)
 
 
 Joint7 = Annotated[list[Annotated[float, Field(ge=-4.0, le=4.0)]], Field(min_length=7, max_length=7)]
