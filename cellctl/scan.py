@@ -1,7 +1,11 @@
 """One "scan drawing" job: the exploration loop of §IV wiring an arm, a camera and a planner.
 
 capture -> cloud in base frame -> C_total, D_total -> grid -> planner -> IK -> trajectory -> move,
-until the planner says stop. Planning, capture, motion planning and motion are timed apart."""
+until the planner says stop. Planning, capture, motion planning and motion are timed apart.
+
+Faults end in a defined state (docs/RELIABILITY.md, "Faults"): a dropped, stale or empty frame is
+captured again (at most CAPTURE_ATTEMPTS per view) and noted in ``ScanResult.incidents``; what cannot
+be recovered ends the scan with ``error`` set, the arm stopped and everything seen so far kept."""
 
 from __future__ import annotations
 
@@ -15,7 +19,7 @@ from typing import Callable
 import numpy as np
 
 from cellctl.config import MotionConfig
-from drivers.interfaces import Arm, DeviceError, JointTrajectory, RGBDCamera
+from drivers.interfaces import Arm, DeviceError, JointTrajectory, RGBDCamera, RGBDFrame, TrajectoryError
 from planners import clouds, raycast
 from planners.base import ScanState, ViewPlan
 from planners.clouds import Cloud
@@ -38,10 +42,16 @@ PLANNERS = {
 
 REACH_TOL_M = 0.02  # a camera further than this from its planned pose did not reach the view
 REACH_TOL_DEG = 5.0
+CAPTURE_ATTEMPTS = 3  # captures per view before a camera fault ends the scan
+EMPTY_VIEWS = 3  # views in a row with no valid depth before the scan fails
 
 
 class ScanError(RuntimeError):
-    """The scan could not go on; the partial result is kept."""
+    """The scan could not go on; the partial result is kept. ``terminated_by`` names why."""
+
+    def __init__(self, message: str, terminated_by: str = "error"):
+        super().__init__(message)
+        self.terminated_by = terminated_by
 
 
 def make_planner(name: str, cfg: PlannersConfig):
@@ -96,6 +106,8 @@ class ScanResult:
     motion_contacts: int = 0  # robot-scene contacts the twin reported over all moves (twin only)
     cut: dict | None = None  # the cutting path's summary (cellctl.cut.CutSummary), when one was planned
     error: str | None = None
+    arm_stopped: bool | None = None  # after an error: whether the arm acknowledged stop() (None: no error)
+    incidents: list[dict] = field(default_factory=list)  # faults met on the way, recovered or not
     viewpoints: list[list[float]] = field(default_factory=list)
     records: list[StepRecord] = field(default_factory=list)
 
@@ -131,6 +143,9 @@ class ScanJob:
         self.surface = Cloud.empty()
         self.drawing = Cloud.empty()
         self.empty_frames = 0
+        self.frames_without_depth = 0  # captures with no valid depth pixel since the last view that had one
+        self.last_stamp: float | None = None  # timestamp of the last frame accepted or refused as empty
+        self.incidents: list[dict] = []
         self.self_filtered = 0  # points dropped because they lay on the arm
         self.last_reach_error_m = self.last_reach_error_deg = 0.0
         self.last_contacts: list[dict] = []
@@ -166,8 +181,62 @@ class ScanJob:
         try:
             idx, plan_s, motion_s, _ = self._move(candidates)
         except Unreachable as e:
-            raise ScanError(f"no initial view is reachable: {e}") from None
+            raise ScanError(f"no initial view is reachable: {e}", "unreachable") from None
         return idx, plan_s, motion_s
+
+    # --- faults ---------------------------------------------------------------------------------
+    def _incident(self, step: int, what: str, detail: str) -> None:
+        self.incidents.append({"step": step, "what": what, "detail": detail[:500]})
+
+    def _capture(self, k: int) -> RGBDFrame:
+        """A frame for view ``k``. A capture that fails (dropped frame), repeats the last timestamp
+        (stale: the view it shows may be from before the move) or has no valid depth pixel is taken
+        again, at most CAPTURE_ATTEMPTS times. Then: DeviceError, except for a view after the first
+        whose frames arrived but held no depth, which goes on as an empty view (a view of nothing is
+        not a fault, EMPTY_VIEWS of them in a row are)."""
+        problems: dict[str, list[str]] = {}  # kind -> details, in order
+        empty: RGBDFrame | None = None
+        for attempt in range(CAPTURE_ATTEMPTS):
+            try:
+                frame = self.camera.capture()
+            except DeviceError as e:
+                self._refuse(k, problems, "no frame", str(e))
+                continue
+            stamp = float(frame.timestamp)
+            if not np.isfinite(stamp) or (self.last_stamp is not None and stamp <= self.last_stamp):
+                self._refuse(k, problems, "stale frame", f"timestamp {stamp:.6f} s did not advance past the "
+                                                         f"last frame's ({self.last_stamp} s)")
+                continue
+            self.last_stamp = stamp
+            d = frame.depth
+            if not np.any(np.isfinite(d) & (d > 0)):
+                self.frames_without_depth += 1
+                self._refuse(k, problems, "no valid depth", "every depth pixel is NaN, zero or negative")
+                empty = frame
+                continue
+            if attempt:
+                self._incident(k, "recovered", f"usable frame at attempt {attempt + 1} of {CAPTURE_ATTEMPTS}")
+            return frame
+        if empty is not None and k > 0:
+            return empty  # frames arrive but hold no depth: an empty view (counted by _process)
+        why = "; ".join(f"{len(v)} x {kind} (last: {v[-1]})" for kind, v in problems.items())
+        if empty is not None:  # the initial view was chosen to see the drawing: no depth there is a fault
+            raise DeviceError(f"camera returned no valid depth in {self.frames_without_depth} frames at the "
+                              f"initial view: {why}")
+        raise DeviceError(f"camera gave no usable frame for view {k} in {CAPTURE_ATTEMPTS} attempts: {why}")
+
+    def _refuse(self, k: int, problems: dict[str, list[str]], kind: str, detail: str) -> None:
+        problems.setdefault(kind, []).append(detail)
+        self._incident(k, kind.replace(" ", "_"), detail)
+
+    def _stop_arm(self, res: ScanResult) -> None:
+        """After an error the arm must not be left moving: stop it and record that it answered."""
+        try:
+            self.arm.stop()
+            res.arm_stopped = True
+        except Exception as e:  # noqa: BLE001 - the error being reported matters more; note this one
+            res.arm_stopped = False
+            self._incident(len(res.records), "arm_stop_failed", f"{type(e).__name__}: {e}")
 
     # --- perception -----------------------------------------------------------------------------
     def _process(self, frame, T_base_cam: np.ndarray, q: np.ndarray) -> Cloud:
@@ -179,10 +248,13 @@ class ScanJob:
             # A view of nothing (everything nearer than the sensor's minimum range, or empty space)
             # teaches nothing but is not a fault; several in a row are.
             self.empty_frames += 1
-            if self.empty_frames >= 3:
-                raise DeviceError("camera returned 3 frames in a row with no valid depth (all NaN, zero or out of range)")
+            if self.empty_frames >= EMPTY_VIEWS:
+                raise DeviceError(f"camera returned no valid depth in {max(self.frames_without_depth, EMPTY_VIEWS)} "
+                                  f"frames ({EMPTY_VIEWS} views in a row with no depth left after the range and "
+                                  f"self filters: all NaN, zero or out of range)")
             return cloud
         self.empty_frames = 0
+        self.frames_without_depth = 0
         self.surface = clouds.concatenate(self.surface, cloud, g.surface_voxel_m)
         c = self.pcfg.color
         paint = clouds.color_mask(cloud.rgb, c.hue_center_deg, c.hue_halfwidth_deg, c.s_min, c.v_min)
@@ -232,12 +304,15 @@ class ScanJob:
             if self.cancelled():  # the stopped arm's TrajectoryError is the cancel itself, not a fault
                 res.terminated_by = "cancelled"
                 return res
+            self._stop_arm(res)
             res.error = f"{type(e).__name__}: {e}"
-            if not isinstance(e, (ScanError, DeviceError, Unreachable, ValueError)):
+            if not isinstance(e, (ScanError, DeviceError, TrajectoryError, Unreachable, ValueError)):
                 res.error += "\n" + traceback.format_exc(limit=6)
-            res.terminated_by = res.terminated_by or "error"
+            res.terminated_by = res.terminated_by or getattr(e, "terminated_by", "error")
+            self._incident(len(res.records), "error", res.error)
         finally:
             done.set()
+            res.incidents = self.incidents
             cov = coverage(self.drawing.xyz, gt_points, self.pcfg.coverage_voxel_m)
             res.coverage_hit, res.coverage_total, res.coverage_percent = cov.hit, cov.total, round(cov.percent, 2)
             res.steps = len(res.records)
@@ -252,7 +327,7 @@ class ScanJob:
                 res.terminated_by = "cancelled"
                 return
             t0 = time.perf_counter()
-            frame = self.camera.capture()
+            frame = self._capture(k)
             T = self.arm.camera_pose()
             q = self.arm.joint_positions()
             if self.first_color is None:

@@ -73,29 +73,31 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
         if on_step:
             on_step(rec)
 
+    unsaved: list[str] = []
     try:  # whatever happens, the run folder ends with a result.json and a closed recording
-        recorder.log_scene(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points)
-        with Twin(scene, twin_cfg) as twin:
-            job = ScanJob(twin.arm, twin.camera, planner, pcfg, cfg.motion, recorder, report, park_q=twin_cfg.home_q,
-                          cancel=cancel)
-            twin.arm.reset(twin_cfg.home_q)
-            if on_phase:
-                on_phase("scanning")
-            result = job.run(scene.name, scene.initial_view_candidates, scene.gt_points)
-            if cut and result.error is None and not job.cancelled() and len(job.drawing):
+        try:
+            with Twin(scene, twin_cfg) as twin:
+                scene = twin.scene  # as placed in the twin (a fault may have moved it)
+                recorder.log_scene(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points)
+                job = ScanJob(twin.arm, twin.camera, planner, pcfg, cfg.motion, recorder, report,
+                              park_q=twin_cfg.home_q, cancel=cancel)
+                twin.arm.reset(twin_cfg.home_q)
                 if on_phase:
-                    on_phase("planning-cut")
-                _cut_phase(job, pcfg, cfg, twin, run_dir, recorder, result, dry_run_cut, progress)
-        for name, cloud in (("drawing.ply", job.drawing), ("surface.ply", job.surface)):
-            if len(cloud) or not job.cancelled():  # a scan cancelled before its first view has no cloud
-                write_ply(run_dir / name, cloud)
-        coverage_figure(run_dir / "coverage.png", scene.gt_points, job.drawing.xyz, np.array(result.viewpoints),
-                        pcfg.coverage_voxel_m, job.surface.xyz,
-                        f"{scene.name} / {planner}: {result.steps} views, coverage {result.coverage_percent:.1f} %")
-        if job.first_color is not None:
-            save_png(run_dir / "view0.png", job.first_color)
+                    on_phase("scanning")
+                result = job.run(scene.name, scene.initial_view_candidates, scene.gt_points)
+                if cut and result.error is None and not job.cancelled() and len(job.drawing):
+                    if on_phase:
+                        on_phase("planning-cut")
+                    _cut_phase(job, pcfg, cfg, twin, run_dir, recorder, result, dry_run_cut, progress)
+        finally:  # what the scan saw is kept, also when the cut phase or the twin failed afterwards
+            if job is not None:
+                unsaved = _keep_views(job, run_dir, scene, pcfg, planner, result)
+        if unsaved:
+            raise OSError("; ".join(unsaved))
     except Exception as e:
         result.error = result.error or f"{type(e).__name__}: {e}"
+        if unsaved and unsaved[0] not in result.error:
+            result.error += "; " + "; ".join(unsaved)
         result.terminated_by = result.terminated_by or "error"
         raise
     finally:
@@ -103,3 +105,24 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
                                              "scene_ref": scene_ref, **result.to_dict()})
         recorder.close()
     return result, run_dir
+
+
+def _keep_views(job: ScanJob, run_dir: Path, scene, pcfg, planner: str, result: ScanResult) -> list[str]:
+    """Clouds, coverage figure and first view into the run folder; never raises (it runs while an
+    error may be on its way out): returns what could not be written."""
+    def write(name: str, fn, *args, **kw) -> None:
+        try:
+            fn(run_dir / name, *args, **kw)
+        except Exception as e:  # noqa: BLE001 - reported by the caller
+            unsaved.append(f"could not write {name}: {type(e).__name__}: {e}")
+
+    unsaved: list[str] = []
+    for name, cloud in (("drawing.ply", job.drawing), ("surface.ply", job.surface)):
+        if len(cloud):  # a scan that ended before its first view has no cloud (and PLY cannot say "empty")
+            write(name, write_ply, cloud)
+    write("coverage.png", coverage_figure, scene.gt_points, job.drawing.xyz, np.array(result.viewpoints),
+          pcfg.coverage_voxel_m, job.surface.xyz,
+          f"{scene.name} / {planner}: {result.steps} views, coverage {result.coverage_percent:.1f} %")
+    if job.first_color is not None:
+        write("view0.png", save_png, job.first_color)
+    return unsaved

@@ -132,11 +132,11 @@ class JobStore:
     def interrupt_unfinished(self, note: str) -> list[str]:
         """At start: every job still queued/running/cancelling belonged to a service that died."""
         with self._lock:
-            ids = [r[0] for r in self._db.execute(
-                "SELECT job_id FROM jobs WHERE state IN ('queued', 'running', 'cancelling') ORDER BY id")]
-        for job_id in ids:
-            self.transition(job_id, "interrupted", note, error=f"interrupted: {note}")
-        return ids
+            rows = self._db.execute("SELECT job_id, artifacts FROM jobs WHERE state IN ('queued', 'running', "
+                                    "'cancelling') ORDER BY id").fetchall()
+        for job_id, arts in rows:  # what the dead job wrote so far is kept, and listed
+            self.transition(job_id, "interrupted", note, error=f"interrupted: {note}", artifacts=_on_disk(arts))
+        return [r[0] for r in rows]
 
     # --- reads ------------------------------------------------------------------------------------
     def get(self, job_id: str) -> JobRecord | None:
@@ -187,3 +187,16 @@ def _first_line(text: str | None, n: int = 200) -> str | None:
         return None
     line = text.strip().splitlines()[0] if text.strip() else text
     return line if len(line) <= n else line[: n - 1] + "…"
+
+
+def _on_disk(artifacts_json: str | None) -> Artifacts | None:
+    """The record's artifacts with the files its folder holds now (None when it has no folder)."""
+    if not artifacts_json:
+        return None
+    try:
+        arts = Artifacts.model_validate_json(artifacts_json)
+        d = Path(arts.dir)
+        files = sorted(p.name for p in d.iterdir() if p.is_file()) if d.is_dir() else []
+    except (OSError, ValueError):  # an unreadable folder must not keep the service from starting
+        return None
+    return Artifacts(dir=arts.dir, files=files[:100])

@@ -10,6 +10,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from configs.poses import pose_from_xyz_rpy_deg
+from sim.faults import FaultsConfig
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
 
@@ -87,7 +88,8 @@ Joint7 = Annotated[list[Annotated[float, Field(ge=-4.0, le=4.0)]], Field(min_len
 
 class TwinConfig(BaseModel):
     """The pybullet twin. ``execution``: "step" follows trajectories by position control with
-    dynamics at ``sim_hz``; "teleport" sets the joint states at each sample (fast tests)."""
+    dynamics at ``sim_hz``; "teleport" sets the joint states at each sample (fast tests).
+    ``faults``: failures to inject (sim/faults.py), none by default."""
 
     model_config = _STRICT
 
@@ -98,3 +100,4 @@ class TwinConfig(BaseModel):
     home_q: Joint7 = Field(default_factory=lambda: [0.0, -0.7, 0.0, -1.7, 0.0, 1.5, 0.785])
     sim_hz: int = Field(240, ge=60, le=2000)
     execution: Literal["step", "teleport"] = "step"
+    faults: FaultsConfig = Field(default_factory=FaultsConfig)

@@ -3,7 +3,9 @@
 ``Twin(scene, config)`` opens its own DIRECT pybullet client (several twins can live in one
 process), loads the floor, the Panda (fixed base at the origin, so the pybullet world frame is the
 robot base frame) and the scene as two static bodies (object and paint). ``twin.arm`` implements
-``drivers.interfaces.Arm`` and ``twin.camera`` implements ``drivers.interfaces.RGBDCamera``.
+``drivers.interfaces.Arm`` and ``twin.camera`` implements ``drivers.interfaces.RGBDCamera``; with
+``config.faults`` set they are the fault-injecting wrappers of sim/faults.py, and ``twin.scene`` is
+the scene as placed (callers take view candidates and ground truth from it).
 
 Never imports planners/ or cellctl/.
 """
@@ -17,6 +19,7 @@ import tempfile
 import threading
 import time
 import weakref
+from typing import Callable
 
 import numpy as np
 import pybullet as p
@@ -27,6 +30,7 @@ from drivers.interfaces import (ArmModel, DeviceError, Intrinsics, JointTrajecto
                                 TrajectoryError)
 from sim.config import TwinConfig
 from sim.d435 import apply_depth_noise, grazing_mask, intrinsics_for
+from sim.faults import FaultyArm, FaultyCamera, place_out_of_reach
 from sim.scenes.model import Scene
 
 PANDA_URDF = os.path.join(pybullet_data.getDataPath(), "franka_panda", "panda.urdf")
@@ -154,6 +158,9 @@ class TwinArm:
         #: tracking of a path (a cut) can be judged after the fact
         self.last_motion_desired = np.zeros((0, 7))
         self.last_motion_actual = np.zeros((0, 7))
+        #: called before each sample (teleport) or simulation step (step) with the trajectory time it
+        #: goes to, outside the lock: how sim/faults.py stops a motion part way through the real stop path
+        self.on_sample: Callable[[float], None] | None = None
 
     # ------------------------------------------------------------------ Arm protocol
     def joint_positions(self) -> np.ndarray:
@@ -178,7 +185,7 @@ class TwinArm:
         self.last_motion_contacts = []
         if self._config.execution == "teleport":
             self.last_motion_desired = self.last_motion_actual = q.copy()
-            return self._teleport(q)
+            return self._teleport(times, q)
         return self._step(times, q, qd)
 
     def stop(self) -> None:
@@ -279,8 +286,10 @@ class TwinArm:
                                   f"(tolerance {START_TOLERANCE})")
         return times, q, qd
 
-    def _teleport(self, q: np.ndarray) -> float:
+    def _teleport(self, times: np.ndarray, q: np.ndarray) -> float:
         for k, sample in enumerate(q):
+            if self.on_sample is not None:
+                self.on_sample(float(times[k]))
             if self._stop.is_set():
                 raise TrajectoryError("execution stopped")
             with self._sim.lock:
@@ -311,6 +320,8 @@ class TwinArm:
         self.last_motion_desired = q_des
         self.last_motion_actual = actual = np.full_like(q_des, np.nan)
         for k in range(n):
+            if self.on_sample is not None:
+                self.on_sample(float(t[k]))
             if self._stop.is_set():
                 with self._sim.lock:
                     self._hold(self.joint_positions())
@@ -437,8 +448,8 @@ class Twin:
     """pybullet twin of the cell. Use as a context manager or call close()."""
 
     def __init__(self, scene: Scene, config: TwinConfig | None = None) -> None:
-        self.scene = scene
         self.config = config if config is not None else TwinConfig()
+        self.scene = place_out_of_reach(scene) if self.config.faults.arm.ik_failure else scene
         self._tmpdir = tempfile.mkdtemp(prefix="scrapcell-twin-")
         self._sim = _Sim()
         self._finalizer = weakref.finalize(self, _shutdown, self._sim, self._tmpdir)
@@ -469,6 +480,11 @@ class Twin:
         self.robot_id: int = sim.robot
         self.arm = TwinArm(sim, self.config)
         self.camera = TwinCamera(sim, self.arm, self.config)
+        faults = self.config.faults
+        if faults.arm.active:
+            self.arm = FaultyArm(self.arm, faults.arm)
+        if faults.camera.active:
+            self.camera = FaultyCamera(self.camera, faults.camera)
         self.arm.reset(np.asarray(self.config.home_q))
 
     def _add_static(self, mesh: trimesh.Trimesh, rgb, name: str) -> int | None:
