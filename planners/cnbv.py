@@ -96,8 +96,9 @@ class ConstrainedNBV:
         R = np.concatenate([_turn(base, y, p) for y, p in self._turns])
         E = np.tile(eyes, (len(self._turns), 1))
         weights = nbv.cell_weights(grid, ijk, cfg)
-        gain = nbv.gains(grid, E, R, weights, nbv.visibility_field(grid, cfg), state.K, state.image_size, cfg)
-        q = nbv.quality(gain, np.linalg.norm(E - state.camera_pose[:3, 3], axis=1), cfg.lam)
+        cost = np.linalg.norm(E - state.camera_pose[:3, 3], axis=1)
+        gain = nbv.gains(grid, E, R, weights, nbv.visibility_field(grid, cfg), state.K, state.image_size, cfg, cost)
+        q = nbv.quality(gain, cost, cfg.lam)
         rank = np.argsort(-q, kind="stable")
         timings["plan_s"] = time.perf_counter() - t0
         best = float(gain.max())

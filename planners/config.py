@@ -77,6 +77,9 @@ class NBVConfig(_Strict):
                                      description="P[o=0] in eq. 8 of an unknown cell behind an observed surface (paper: 0.5)")
     rays_w: int = Field(48, ge=4, le=400)
     rays_h: int = Field(28, ge=3, le=300)
+    coarse_ray_factor: int = Field(3, ge=1, le=10, description="candidates are first scored with a ray bundle "
+                                   "this many times sparser per axis (1: every candidate with the full bundle)")
+    refine_top: int = Field(128, ge=1, le=100_000, description="... and the best this many by Q again with the full one")
     max_range_m: float = Field(0.8, gt=0.1, le=5)
     frontier_reach_voxels: int = Field(1, ge=1, le=10, description="how far a drawing cell may be from the unknown")
     min_frontier_cluster: int = Field(3, ge=1, le=1000)
@@ -96,6 +99,11 @@ class NBVConfig(_Strict):
     min_view_growth_voxels: int = Field(3, ge=0, le=10_000,
                                         description="G-NBV: a view adding fewer drawing voxels sends its target to the cone-free "
                                         "tier, a second one gives it up (0: never)")
+    end_check_m: float = Field(0.03, ge=0, le=0.2, description="G-NBV: a frontier cluster at a tip of the drawing is "
+                               "closed when this much surface past the tip was seen unpainted (0: never)")
+    end_width_m: float = Field(0.012, gt=0, le=0.1, description="half-width of that tube past the tip")
+    end_radius_m: float = Field(0.05, gt=0.005, le=0.3, description="drawing within this of the cluster gives its direction")
+    end_min_points: int = Field(40, ge=1, le=100_000, description="surface points (2 mm apart) that tube must hold")
     max_target_visits: int = Field(3, ge=1, le=20, description="give up a frontier cluster after this many views at it")
     ik_candidates: int = Field(40, ge=1, le=10_000, description="ranked candidates the runner tries to reach")
 

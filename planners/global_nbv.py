@@ -65,9 +65,10 @@ class GlobalNBV:
             return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "no_candidates",
                             timings={"plan_s": time.perf_counter() - t0})
         R = look_at_rotations(eyes, center)
+        cost = np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1)
         gain = nbv.gains(grid, eyes, R, (w.reshape(-1), corners), nbv.visibility_field(grid, cfg), state.K,
-                         state.image_size, cfg)
-        q = nbv.quality(gain, np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1), cfg.lam)
+                         state.image_size, cfg, cost)
+        q = nbv.quality(gain, cost, cfg.lam)
         rank = np.argsort(-q, kind="stable")
         best = float(gain.max())
         if self._first_best is None:

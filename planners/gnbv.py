@@ -9,7 +9,7 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from planners import nbv
+from planners import ends, nbv
 from planners.base import ScanState, ViewPlan
 from planners.config import PlannersConfig
 from planners.grid import frontier_clusters
@@ -54,6 +54,9 @@ class GuidedNBV:
             usable[lab[idx[d < near]]] = False
             # a centroid can lie off its cells (a curved cluster): near a given-up centroid counts too
             usable &= np.linalg.norm(cents[:, None, :] - G[None, :, :], axis=2).min(axis=1) >= 2 * near
+        for c in np.flatnonzero(usable):  # a handful of clusters
+            if ends.ended(state.drawing.xyz, state.surface.xyz, cents[c], self.cfg):
+                usable[c] = False
         if n and self._targets:
             T = np.asarray(self._targets)
             visits = (np.linalg.norm(cents[:, None, :] - T[None, :, :], axis=2) < 2 * near).sum(axis=1)
@@ -91,8 +94,9 @@ class GuidedNBV:
         if len(eyes) == 0:
             return None
         R = look_at_rotations(eyes, self._aim_point(state, target))
-        gain = nbv.gains(grid, eyes, R, weights, p_free, state.K, state.image_size, cfg)
-        q = nbv.quality(gain, np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1), cfg.lam)
+        cost = np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1)
+        gain = nbv.gains(grid, eyes, R, weights, p_free, state.K, state.image_size, cfg, cost)
+        q = nbv.quality(gain, cost, cfg.lam)
         rank = np.argsort(-q, kind="stable")
         best = float(gain.max())
         if self._first_gain is None:

@@ -74,10 +74,31 @@ def visibility_field(grid: OccupancyGrid, cfg: NBVConfig) -> np.ndarray:
 
 
 def gains(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights: tuple[np.ndarray, np.ndarray],
-          p_free: np.ndarray, K: np.ndarray, image_size: tuple[int, int], cfg: NBVConfig) -> np.ndarray:
-    """gain(s) of eq. 5 for all candidates; `weights` is what cell_weights returns."""
+          p_free: np.ndarray, K: np.ndarray, image_size: tuple[int, int], cfg: NBVConfig,
+          cost: np.ndarray | None = None) -> np.ndarray:
+    """gain(s) of eq. 5 for all candidates; `weights` is what cell_weights returns.
+
+    With the candidates' travel `cost`, scoring is coarse to fine: every candidate is cast with a
+    ray bundle `coarse_ray_factor` times sparser per axis, and only the `refine_top` best by Q are
+    cast with the full bundle. The others keep their coarse gain, scaled to the fine one's units by
+    the refined candidates' ratio: their rank only matters if every refined one proves unreachable."""
+    f = cfg.coarse_ray_factor
+    if cost is None or f <= 1 or len(eyes) <= cfg.refine_top:
+        return _cast(grid, eyes, rotations, weights, p_free, ray_bundle(K, image_size, cfg.rays_w, cfg.rays_h), cfg)
+    coarse = _cast(grid, eyes, rotations, weights, p_free,
+                   ray_bundle(K, image_size, max(cfg.rays_w // f, 2), max(cfg.rays_h // f, 2)), cfg)
+    top = np.argpartition(-quality(coarse, cost, cfg.lam), cfg.refine_top - 1)[:cfg.refine_top]
+    fine = _cast(grid, eyes[top], rotations[top], weights, p_free,
+                 ray_bundle(K, image_size, cfg.rays_w, cfg.rays_h), cfg)
+    cs = coarse[top].sum()
+    out = coarse * (fine.sum() / cs if cs > 0 else 0.0)
+    out[top] = fine
+    return out
+
+
+def _cast(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights: tuple[np.ndarray, np.ndarray],
+          p_free: np.ndarray, rays: np.ndarray, cfg: NBVConfig) -> np.ndarray:
     w, box = weights
-    rays = ray_bundle(K, image_size, cfg.rays_w, cfg.rays_h)
     return raycast.view_gains(np.ascontiguousarray(eyes, dtype=np.float64),
                               np.ascontiguousarray(rotations, dtype=np.float64),
                               rays, float(cfg.max_range_m), grid.lo, grid.voxel,

@@ -89,3 +89,57 @@ def test_growth_watch_flags_a_view_that_found_no_drawing():
     watch.planned(2, target, grid)
     grid.drawing[10, 11, 10:15] = True
     assert watch.fruitless(3, grid) is None
+
+
+def _stripe(seen_to_y: float, paint_from_gap: float | None = None):
+    """A 2 cm stripe along y on the plane z = 0.1, painted up to y = 0, the plane seen up to `seen_to_y`;
+    with `paint_from_gap` the paint resumes that far past y = 0 (a gap, as between a basket's rods)."""
+    xs, ys = np.meshgrid(np.arange(0.40, 0.50, 0.002), np.arange(-0.20, seen_to_y, 0.002))
+    surface = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.10)], 1)
+    stripe = np.abs(surface[:, 0] - 0.45) < 0.01
+    paint = stripe & (surface[:, 1] <= 0.0)
+    if paint_from_gap is not None:
+        paint |= stripe & (surface[:, 1] >= paint_from_gap)
+    return surface[paint], surface
+
+
+@pytest.mark.parametrize("seen_to_y, gap, center, expect", [
+    (0.10, None, (0.45, 0.0), True),     # the plane goes on unpainted past the tip: the drawing ended
+    (0.0, None, (0.45, 0.0), False),     # nothing seen past the tip: it may go on
+    (0.10, 0.025, (0.45, 0.0), False),   # paint again past a gap: not an end
+    (0.10, None, (0.46, -0.10), False),  # a cluster on the stripe's side, not at its tip
+])
+def test_a_drawing_that_visibly_ends_on_a_continuing_surface_closes_its_frontier(seen_to_y, gap, center, expect):
+    from planners.ends import ended
+
+    cfg = PlannersConfig().nbv
+    drawing, surface = _stripe(seen_to_y, gap)
+    c = np.array([center[0], center[1], 0.10])
+    assert ended(drawing, surface, c, cfg) is expect
+    assert ended(drawing, surface, c, cfg.model_copy(update={"end_check_m": 0.0})) is False  # switched off
+
+
+def test_coarse_to_fine_scoring_refines_the_best_and_keeps_the_ranking():
+    from planners import nbv
+    from planners.views import sphere_lattice
+
+    cfg, state = _state()
+    c = cfg.nbv
+    target = np.array([0.45, -0.01, 0.10])
+    eyes = target + sphere_lattice(c.search_radius_m, c.min_standoff_m, c.candidate_spacing_m)
+    eyes = eyes[nbv.feasible_eyes(state.grid, eyes, target, None, c)]
+    assert len(eyes) > 2 * c.refine_top
+    R = look_at_rotations(eyes, target)
+    ijk = np.argwhere(state.grid.frontier())
+    w = nbv.cell_weights(state.grid, ijk, c)
+    p_free = nbv.visibility_field(state.grid, c)
+    cost = np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1)
+    exact = nbv.gains(state.grid, eyes, R, w, p_free, K, SIZE, c.model_copy(update={"coarse_ray_factor": 1}), cost)
+    c2f = nbv.gains(state.grid, eyes, R, w, p_free, K, SIZE, c, cost)
+    refined = np.isclose(c2f, exact, rtol=1e-9, atol=0)
+    assert refined.sum() >= c.refine_top  # the refined ones carry the exact gain
+    q_exact = nbv.quality(exact, cost, c.lam)
+    best = int(np.argmax(nbv.quality(c2f, cost, c.lam)))
+    assert refined[best]
+    assert q_exact[best] >= q_exact.max() - 0.05 * np.ptp(q_exact)  # as good as the exact choice, or nearly
+    assert np.array_equal(nbv.gains(state.grid, eyes, R, w, p_free, K, SIZE, c), exact)  # no cost: exact
