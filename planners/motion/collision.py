@@ -425,13 +425,19 @@ class RobotCollisionModel:
             return out
         P = self.part_poses(q)
         c = np.einsum("pij,pj->pi", P[:, :3, :3], self._centre) + P[:, :3, 3]
+        reach = (self._radius + pad_m)[:, None]
+        # one pass over all points against the box round every part; a view of the workpiece has
+        # few points near the arm, so the per-part tests below see only those
+        lo, hi = (c - reach).min(axis=0), (c + reach).max(axis=0)
+        cand = np.flatnonzero(np.all((pts >= lo) & (pts <= hi), axis=1))
+        sub = pts[cand]
         for k in range(len(self.parts)):  # ~12 parts; each a vectorized test on the points near it
-            near = np.flatnonzero(np.sum((pts - c[k]) ** 2, axis=1) <= (self._radius[k] + pad_m) ** 2)
+            near = np.flatnonzero(np.sum((sub - c[k]) ** 2, axis=1) <= (self._radius[k] + pad_m) ** 2)
             if len(near) == 0:
                 continue
-            local = (pts[near] - P[k, :3, 3]) @ P[k, :3, :3]  # into the part's frame
+            local = (sub[near] - P[k, :3, 3]) @ P[k, :3, :3]  # into the part's frame
             n, d = self._planes[k]
-            out[near[np.all(local @ n.T <= d + pad_m, axis=1)]] = True
+            out[cand[near[np.all(local @ n.T <= d + pad_m, axis=1)]]] = True
         return out
 
     def _pairs_colliding(self, q: np.ndarray, pairs: np.ndarray, poses: np.ndarray | None = None) -> np.ndarray:
