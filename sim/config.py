@@ -9,6 +9,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from configs.loading import load_yaml_model
 from configs.poses import pose_from_xyz_rpy_deg
 from sim.faults import FaultsConfig
 
@@ -81,6 +82,18 @@ class HandEyeConfig(BaseModel):
     def T_flange_cam(self) -> np.ndarray:
         """4x4 float64 T_flange_cam."""
         return pose_from_xyz_rpy_deg(self.xyz, self.rpy_deg)
+
+    @classmethod
+    def from_file(cls, path, error: type[Exception] = ValueError) -> "HandEyeConfig":
+        """The ``hand_eye:`` block of a file written by `cellctl calibrate hand-eye`; its other keys
+        (residual, method, date) are the calibration's record, not config, and are not checked."""
+        return load_yaml_model(path, _HandEyeFile, error, "hand-eye file").hand_eye
+
+
+class _HandEyeFile(BaseModel):
+    model_config = ConfigDict(extra="ignore")
+
+    hand_eye: HandEyeConfig
 
 
 Joint7 = Annotated[list[Annotated[float, Field(ge=-4.0, le=4.0)]], Field(min_length=7, max_length=7)]

@@ -49,7 +49,8 @@ class ViewMotionPlanner:
     def __init__(self, kin: Kinematics, max_velocity, max_acceleration, max_jerk, checker: CollisionChecker | None,
                  *, speed_factor: float = 0.5, ik_margin_rad: float = 0.05, ik_seeds: int = 6,
                  retract_m: float = 0.10, park_q: np.ndarray | None = None, max_joint_step_rad: float = math.radians(1.0),
-                 max_tcp_step_m: float = 0.01, via_candidates: int = 8, budget_s: float = 60.0):
+                 max_tcp_step_m: float = 0.01, via_candidates: int = 8, budget_s: float = 60.0,
+                 free_roll: bool = True):
         if not (math.isfinite(retract_m) and 0 <= retract_m <= 0.5):
             raise ValueError(f"retract_m must be in [0, 0.5] m, got {retract_m!r}")
         self.kin, self.checker = kin, checker
@@ -63,6 +64,8 @@ class ViewMotionPlanner:
         # scan's outcome depend on the machine's load.
         self.via_candidates, self.budget_s = int(via_candidates), float(budget_s)
         self.last_collision: Collision | None = None
+        # a scan view leaves the roll about the optical axis to IK; a calibration view needs it as asked
+        self.free_roll = bool(free_roll)
 
     # ------------------------------------------------------------------ pieces
     def _free(self, q: np.ndarray) -> bool:
@@ -70,7 +73,8 @@ class ViewMotionPlanner:
 
     def _ik(self, T: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
         try:
-            return solve_camera_ik(self.kin, T, seed, margin=self.margin, seeds=self.seeds, accept=self._free).q
+            return solve_camera_ik(self.kin, T, seed, free_roll=self.free_roll, margin=self.margin, seeds=self.seeds,
+                                   accept=self._free).q
         except Unreachable:
             return None
 
