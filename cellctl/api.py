@@ -36,7 +36,7 @@ JobState = Literal["queued", "running", "cancelling", "done", "failed", "cancell
 TERMINAL_STATES = frozenset({"done", "failed", "cancelled", "interrupted"})
 Phase = Literal["queued", "scanning", "planning-cut", "done", "failed", "cancelled", "interrupted"]
 ErrorCode = Literal["bad_json", "invalid_request", "payload_too_large", "unsupported_schema_version", "queue_full",
-                    "not_found", "not_cancellable", "shutting_down", "internal_error"]
+                    "cell_not_ready", "not_found", "not_cancellable", "shutting_down", "internal_error"]
 
 ERROR_CODES: dict[str, str] = {
     "bad_json": "the payload is empty, not UTF-8, or not JSON",
@@ -45,6 +45,9 @@ ERROR_CODES: dict[str, str] = {
     "payload_too_large": f"the payload is over {MAX_PAYLOAD_BYTES} bytes",
     "unsupported_schema_version": f"schema_version is not {SCHEMA_VERSION}",
     "queue_full": "the job queue is at its configured length (service.queue_max); retry later",
+    "cell_not_ready": "the arm or the camera is not ready (robot unreachable, FCI not active, no camera: the message "
+                      "and the status's not_ready_reason say which); nothing was queued, submit again once the status "
+                      "shows ready",
     "not_found": "no job with this id",
     "not_cancellable": "the job already ended (done, failed, cancelled or interrupted)",
     "shutting_down": "the service is stopping and takes no new jobs",
@@ -253,9 +256,14 @@ class CellStatus(ApiModel):
     schema_version: Literal[1] = SCHEMA_VERSION
     cell_id: CellId
     version: str = Field(max_length=64, description="scrapcell package version")
-    mode: Literal["sim"]
+    mode: Literal["sim", "fcisim", "real"] = Field(description="sim: the pybullet twin; fcisim: the Franka adapter "
+                                                   "on franky-sim, the twin's camera; real: the Franka and the D435")
     arm_ready: bool
     camera_ready: bool
+    ready: bool = Field(description="a submitted job can start: arm and camera answer (fcisim, real: probed at start "
+                                    "and every 10 s while idle); false: submits are refused with cell_not_ready")
+    not_ready_reason: str | None = Field(None, max_length=1000, description="why not ready, e.g. the robot is "
+                                         "unreachable, FCI is not active, no RealSense found")
     devices: str = Field(max_length=200, description="what drives the arm and the camera")
     accepting_jobs: bool
     queue_length: int = Field(ge=0, description="jobs waiting, the running one not counted")

@@ -56,9 +56,20 @@ def examples() -> dict[str, BaseModel]:
         "cancel_request": CancelRequest(reason="wrong part on the table"),
         "cancel_reply": CancelReply(job_id=J, state="cancelling"),
         "status": CellStatus(cell_id="sim-1", version="0.1.0", mode="sim", arm_ready=True, camera_ready=True,
+                             ready=True,
                              devices="pybullet twin (arm and D435), built per job", accepting_jobs=True,
                              queue_length=1, queue_max=8, running_job=J, jobs_total=42,
                              started_at="2025-03-14T08:00:00.000Z", uptime_s=8100.12),
+        "status_not_ready": CellStatus(
+            cell_id="real-1", version="0.1.0", mode="real", arm_ready=False, camera_ready=True, ready=False,
+            not_ready_reason="arm: Franka at 172.16.0.2: connection to the FCI port 1337 refused: FCI is not active "
+                             "(Desk answers on port 443: open Desk, unlock the joints and activate FCI)",
+            devices="franky panda at 172.16.0.2; RealSense D435 141722071234 848x480@30", accepting_jobs=True,
+            queue_length=0, queue_max=8, jobs_total=42, started_at="2025-03-14T08:00:00.000Z", uptime_s=31.5),
+        "error_not_ready": ErrorReply(code="cell_not_ready", message="the cell is not ready, nothing was queued: arm: "
+                                      "Franka at 172.16.0.2: connection to the FCI port 1337 refused: FCI is not "
+                                      "active (...); submit again once status shows ready (the devices are checked "
+                                      "every 10 s)"),
         "event_step": JobEvent(job_id=J, seq=3, phase="scanning", state="running", step=1, max_steps=12,
                                coverage_percent=87.2, drawing_points=3665, time="2025-03-14T10:15:06.512Z"),
         "event_done": JobEvent(job_id=J, seq=9, phase="done", state="done", step=4, max_steps=12,
@@ -187,6 +198,11 @@ Error replies, e.g. an unknown planner, or a full queue:
 
 {_json(ex["error_queue_full"])}
 
+A cell whose arm or camera does not answer (`ready: false` in the status) refuses every submit with
+`cell_not_ready` and stores nothing; the job is the client's to submit again:
+
+{_json(ex["error_not_ready"])}
+
 To follow a job from its first event, subscribe to `{k}/jobs/*/events` **before** submitting and keep the
 events whose `job_id` is the one in the reply (`CellClient.submit(request, on_event=...)` does this).
 
@@ -232,6 +248,13 @@ The record is written before the event is published: after a terminal event the 
 ### Status: `{k}/status`
 
 {_json(ex["status"])}
+
+`ready` says whether a job submitted now could start. In modes `fcisim` and `real` the service probes the
+arm (one libfranka connection: reachable, FCI active, right model and kinematics) and the camera (the
+configured D435 connected, with its modes) when it starts, every 10 s while no job runs and right after a
+refused submit or a finished job; `not_ready_reason` then says what is missing:
+
+{_json(ex["status_not_ready"])}
 
 ## Job states
 

@@ -284,6 +284,22 @@ def summary_line(doc: dict) -> str:
     return f"{len(runs)} runs, {errors} errors, {wall:.0f} s wall, max RSS {rss:.0f} MiB"
 
 
+def scoring_bench(args, out: Path) -> int:
+    from cellctl import scoring_bench as sb
+    from cellctl.config import load_cell_config
+    from planners.config import load_planners_config
+    from sim.scenes import SCENE_NAMES
+
+    cfg, cfg_path = load_cell_config(args.config)
+    pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
+    scenes = parse_list(args.scenes, SCENE_NAMES, "scenes", SCENE_NAMES)
+    result = sb.measure(cfg, pcfg, scenes, repeats=max(args.seeds or 3, 1))
+    print(sb.write(result, out))
+    print(f"median speed-up {result['median_speedup']:.2f}x, same best view in {result['same_best_view']} of "
+          f"{result['states']} states")
+    return 0
+
+
 def cli_bench(args) -> int:
     """`cellctl bench` (parser in cellctl/cli.py). Exit 0: all runs ok; 1: some run failed; 130: interrupted."""
     from cellctl import bench_report
@@ -297,6 +313,12 @@ def cli_bench(args) -> int:
         return 0
     if getattr(args, "service", None) is not None:
         return service_bench(args.service, Path(args.out) if args.out else default_out_dir())
+    if getattr(args, "load", False):
+        from cellctl.load_bench import cli_load
+
+        return cli_load(args, Path(args.out) if args.out else default_out_dir())
+    if getattr(args, "scoring", False):
+        return scoring_bench(args, Path(args.out) if args.out else default_out_dir())
     q = QUICK if args.quick else {}
     scenes = parse_list(args.scenes, SCENE_NAMES, "scenes", q.get("scenes", SCENE_NAMES))
     planners = parse_list(args.planners, DEFAULT_PLANNERS, "planners", q.get("planners", DEFAULT_PLANNERS))

@@ -13,11 +13,17 @@ def _scan(args: argparse.Namespace) -> int:
     from cellctl.config import load_cell_config
     from cellctl.scan_run import run_scan_in_twin
 
+    from drivers.interfaces import DeviceError
+
     cfg, cfg_path = load_cell_config(args.config)
-    result, run_dir = run_scan_in_twin(cfg, cfg_path, args.scene, args.planner, seed=args.seed,
-                                       noise=not args.no_noise, out=args.out, max_steps=args.max_steps,
-                                       progress=not args.quiet, cut=not args.no_cut,
-                                       dry_run_cut=args.dry_run_cut)
+    try:
+        result, run_dir = run_scan_in_twin(cfg, cfg_path, args.scene, args.planner, seed=args.seed,
+                                           noise=not args.no_noise, out=args.out, max_steps=args.max_steps,
+                                           progress=not args.quiet, cut=not args.no_cut,
+                                           dry_run_cut=args.dry_run_cut)
+    except DeviceError as e:  # fcisim/real: the arm or camera did not open (the message says why)
+        print(f"cellctl scan: {e}", file=sys.stderr)
+        return 3
     _print_summary(result, run_dir)
     return 0 if result.error is None else 1
 
@@ -39,6 +45,18 @@ def _serve(args: argparse.Namespace) -> int:
     except StoreError as e:
         print(f"cellctl serve: {e}", file=sys.stderr)
         return 1
+
+
+def _doctor(args: argparse.Namespace) -> int:
+    from cellctl.doctor import cli_doctor
+
+    return cli_doctor(args)
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    from cellctl.handeye import cli_board, cli_hand_eye
+
+    return cli_hand_eye(args) if args.what == "hand-eye" else cli_board(args)
 
 
 def _client(args: argparse.Namespace):
@@ -201,7 +219,8 @@ def _client_args(p: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="cellctl", description="scrapcell cell controller")
     sub = p.add_subparsers(dest="cmd", required=True)
-    s = sub.add_parser("scan", help="scan a drawing in the pybullet twin and write a run folder")
+    s = sub.add_parser("scan", help="scan a drawing on the config's devices (mode sim: the pybullet twin; fcisim, "
+                                    "real: see docs/HARDWARE.md) and write a run folder")
     s.add_argument("--scene", required=True, help="built-in scene name or path to a scene .yaml")
     s.add_argument("--planner", default="gnbv", help="next-view planner (default: gnbv)")
     s.add_argument("--config", default=None, help="cell config YAML (default: configs/cell.sim.yaml)")
@@ -227,6 +246,20 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--no-memory", action="store_true", help="do not trace allocations (tracemalloc) during runs")
     b.add_argument("--service", type=int, nargs="?", const=100, default=None, metavar="N",
                    help="instead of scans: the job API's latency on loopback (N status queries, default 100)")
+    b.add_argument("--load", action="store_true",
+                   help="instead of scans: the load test of the job API on loopback (load.json, load.md; "
+                        "docs/RELIABILITY.md)")
+    b.add_argument("--jobs", type=int, default=200, help="with --load: jobs submitted in all (default: 200)")
+    b.add_argument("--clients", type=int, default=10, help="with --load: client sessions (default: 10)")
+    b.add_argument("--hz", type=float, default=50.0, help="with --load: status and jobs queries per second, each "
+                                                         "(default: 50)")
+    b.add_argument("--queue-max", type=int, default=8, help="with --load: the service's queue_max (default: 8)")
+    b.add_argument("--job-profile", choices=("initial_view", "scan"), default="initial_view",
+                   help="with --load: service.job_profile; initial_view (0.3 s jobs, default) or scan (full jobs, "
+                        "max_steps 1)")
+    b.add_argument("--scoring", action="store_true",
+                   help="instead of scans: G-NBV's coarse-to-fine candidate scoring against exact scoring on the "
+                        "same states, in one process (scoring.json, scoring.md)")
     b.add_argument("--report", default=None, metavar="BENCH_JSON",
                    help="only rewrite bench.md and the plots next to this bench.json, no scans")
     b.set_defaults(func=_bench)
@@ -273,6 +306,12 @@ def build_parser() -> argparse.ArgumentParser:
     _client_args(jc)
     jc.set_defaults(func=_jobs_cancel)
 
+    dr = sub.add_parser("doctor", help="is this PC ready for the real cell? RealSense, libusb, udev, libfranka, "
+                                       "the FCI host",
+                        description="Exit status: 0 every check passed, 1 something is missing (each line says "
+                                    "how to fix it), 2 invalid config.")
+    dr.add_argument("--config", default=None, help="cell config YAML (default: configs/cell.real.yaml)")
+    dr.set_defaults(func=_doctor)
     st = sub.add_parser("status", help="a cell's health: arm, camera, queue, running job")
     _client_args(st)
     st.set_defaults(func=_status)
@@ -282,7 +321,77 @@ def build_parser() -> argparse.ArgumentParser:
                    help="listen endpoint, e.g. tcp/127.0.0.1:7447 (repeatable; default: the config's)")
     r.add_argument("--users", default=None, help="user:password file (default: the config's dictionary_file)")
     r.set_defaults(func=_router)
+    cal = sub.add_parser("calibrate", help="calibrate the cell (hand-eye)")
+    cal_kind = cal.add_subparsers(dest="what", required=True)
+    he = cal_kind.add_parser("hand-eye", help="solve the camera's pose on the flange from views of a ChArUco board "
+                                              "and write the hand-eye file (docs/HARDWARE.md)",
+                             description="Exit status: 0 written, 1 calibration failed (board not seen, too few "
+                                         "views), 2 bad arguments or config.")
+    he.add_argument("--config", default=None, help="cell config YAML (default: configs/cell.sim.yaml)")
+    he.add_argument("--poses", type=int, default=12, metavar="N", help="views of the board to use (default: 12, "
+                                                                        "at least 5)")
+    he.add_argument("--out", default=None, metavar="YAML",
+                    help="hand-eye file to write (default: hand_eye.yaml beside the cell config)")
+    he.add_argument("--method", default="best", choices=("best", "tsai", "park", "horaud", "andreff", "daniilidis"),
+                    help="calibrateHandEye method (default: best = every method, lowest reprojection RMS)")
+    he.add_argument("--seed", type=int, default=0, help="seed of the view poses (default: 0)")
+    he.add_argument("--quiet", action="store_true", help="no per-view progress lines")
+    cb = cal_kind.add_parser("board", help="write the ChArUco board to print for hand-eye")
+    cb.add_argument("--out", default="charuco.png", help="PNG to write (default: charuco.png)")
+    cb.add_argument("--dpi", type=int, default=300, help="print resolution tagged in the PNG (default: 300)")
+    for a in (he, cb):
+        a.add_argument("--square-mm", type=float, default=40.0, help="square side as printed (default: 40)")
+        a.add_argument("--marker-mm", type=float, default=30.0, help="marker side as printed (default: 30)")
+        a.set_defaults(func=_calibrate)
+    rec = sub.add_parser("record", help="record the live RealSense D435 to a .bag (replayable offline)",
+                         description="Exit status: 0 recorded, 2 bad arguments or camera config, 3 no camera or "
+                                     "the camera failed (the message says what to check).")
+    rec.add_argument("--seconds", type=_positive_seconds, required=True, metavar="N", help="how long to record")
+    rec.add_argument("--out", default=None, metavar="FILE.bag", help="output bag (default: d435-<timestamp>.bag)")
+    rec.add_argument("--camera-config", default=None, metavar="YAML",
+                     help="camera config, or a cell config with a camera: block (default: configs/camera.d435.yaml)")
+    rec.set_defaults(func=_record)
     return p
+
+
+def _positive_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not 0.0 < value <= 3600.0:  # also refuses nan and inf
+        raise argparse.ArgumentTypeError(f"{text} must be in (0, 3600] seconds")
+    return value
+
+
+def _record(args: argparse.Namespace) -> int:
+    """Record the live D435 to a .bag through Open3D's RealSenseSensor (the bag replays through
+    drivers.realsense.RealSenseBag). No camera: one clear line and exit status 3."""
+    import time
+
+    from configs import CONFIG_DIR
+    from drivers.interfaces import DeviceError
+    from drivers.realsense.config import load_realsense_config
+    from drivers.realsense.sensor import RealSenseCamera
+
+    cfg = load_realsense_config(args.camera_config or CONFIG_DIR / "camera.d435.yaml")
+    out = Path(args.out or time.strftime("d435-%Y%m%d-%H%M%S.bag"))
+    if out.suffix.lower() != ".bag":
+        raise ValueError(f"--out {out}: the file name must end in .bag")
+    if out.exists():
+        raise ValueError(f"--out {out} exists already; choose another file")
+    frames = 0
+    try:
+        with RealSenseCamera(cfg, record_to=out, record="all") as cam:
+            end = time.monotonic() + args.seconds
+            while time.monotonic() < end:
+                cam.capture()
+                frames += 1
+    except DeviceError as e:
+        print(f"cellctl record: {e}", file=sys.stderr)
+        return 3
+    print(f"{out}: {frames} frames in {args.seconds:g} s from RealSense {cam.serial}")
+    return 0
 
 
 def _router(args: argparse.Namespace) -> int:

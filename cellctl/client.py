@@ -105,6 +105,8 @@ class CellClient:
                     raise CellError("bad_reply", f"{key}: the cell's reply does not match this client's API "
                                                  f"({model.__name__}): {e.errors()[0]['msg']}") from None
             raw = reply.err.payload.to_bytes()
+            if raw == b"Timeout":  # Zenoh's own error reply once a timeout is up (this session's, or a peer's
+                break              # or router's on the way); the cell's errors are ErrorReply JSON
             try:
                 err = ErrorReply.model_validate_json(raw)
             except ValidationError:

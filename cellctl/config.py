@@ -8,9 +8,11 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from configs import CONFIG_DIR
-from planners.config import load_yaml_model
+from drivers.panda.config import FrankaConfig, HandEye
+from drivers.realsense.config import RealSenseConfig
+from planners.config import ConfigError, load_yaml_model
 from planners.motion.collision import CollisionConfig
-from sim.config import TwinConfig
+from sim.config import HandEyeConfig, TwinConfig
 
 
 class MotionConfig(BaseModel):
@@ -55,6 +57,10 @@ class ServiceConfig(BaseModel):
                                     "job to stop")
     rerun_connect: str | None = Field(None, max_length=256, description="live viewer for jobs' recordings "
                                       "(overrides the top-level rerun_connect)")
+    job_profile: Literal["scan", "initial_view"] = Field(
+        "scan", description="scan: every job is the full scan and cut; initial_view: every job only builds the twin "
+        "and captures the scene's initial view (no motion, no planning, no cut), a cheap real job for load tests "
+        "(cellctl.view_job); never on a production cell")
 
     @model_validator(mode="after")
     def _client_needs_a_router(self) -> "ServiceConfig":
@@ -65,17 +71,75 @@ class ServiceConfig(BaseModel):
         return self
 
 
+class FciSimConfig(BaseModel):
+    """mode fcisim: where the franky-sim robot (a MuJoCo FR3 behind libfranka's protocol) runs."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    simulator: Literal["embedded", "external"] = Field(
+        "embedded", description="embedded: the cell starts franky-sim itself (a child process) on the first free "
+        "loopback address from arm.host on, the arm at twin.home_q; external: a franky-sim server already "
+        "runs at arm.host (`python -m cellctl.fcisim`)")
+    start_timeout_s: float = Field(60.0, gt=0, le=600, description="embedded: longest wait for the simulator")
+
+
+MODES_WITH_ARM = ("fcisim", "real")
+
+
 class CellConfig(BaseModel):
+    """``mode``: sim = the pybullet twin moves and sees; fcisim = the franky adapter drives franky-sim and
+    the twin renders the camera from the arm's measured joints; real = the Franka and the D435
+    (docs/HARDWARE.md, "Running the cell")."""
+
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     cell_id: str = Field("sim-1", pattern=r"^[A-Za-z0-9_-]{1,64}$")
-    mode: Literal["sim"] = "sim"
+    mode: Literal["sim", "fcisim", "real"] = "sim"
+    arm: FrankaConfig | None = Field(None, description="fcisim and real: the franky adapter (drivers.panda)")
+    camera: RealSenseConfig | None = Field(None, description="real: the D435 (drivers.realsense)")
+    fcisim: FciSimConfig = Field(default_factory=FciSimConfig)
     twin: TwinConfig = Field(default_factory=TwinConfig)
+    hand_eye_file: str | None = Field(None, description="T_flange_cam written by `cellctl calibrate hand-eye`, "
+                                      "relative to this file; when set it replaces twin.hand_eye")
     motion: MotionConfig = Field(default_factory=MotionConfig)
     planners_config: str = Field("planners.yaml", description="path, relative to this file")
     runs_dir: str = "runs"
     rerun_connect: str | None = Field(None, description="optional live viewer address, e.g. rerun+http://127.0.0.1:9876/proxy")
     service: ServiceConfig = Field(default_factory=ServiceConfig)
+
+    @model_validator(mode="after")
+    def _devices_for_the_mode(self) -> "CellConfig":
+        """Each mode gets the device blocks it drives; the message names the field to fix."""
+        if self.mode in MODES_WITH_ARM and self.arm is None:
+            raise ValueError(f"arm: mode {self.mode} needs an `arm:` block (drivers.panda FrankaConfig: host, model, "
+                             f"hand_eye, ...; see configs/cell.{'fcisim' if self.mode == 'fcisim' else 'real'}.yaml)")
+        if self.mode == "real" and self.camera is None:
+            raise ValueError("camera: mode real needs a `camera:` block (drivers.realsense RealSenseConfig: serial, "
+                             "modes, ...; see configs/cell.real.yaml)")
+        if self.mode == "real" and self.camera.bag is not None:
+            raise ValueError(f"camera.bag: a real cell streams the live D435 while the arm moves; {self.camera.bag} "
+                             f"can only be replayed offline (drivers.realsense.RealSenseBag)")
+        if self.mode == "fcisim":
+            arm = self.arm
+            if arm.model != "fr3":
+                raise ValueError(f"arm.model: franky-sim simulates an FR3 (robot server version 10); mode fcisim "
+                                 f"needs arm.model: fr3, got {arm.model!r}")
+            if arm.realtime:
+                raise ValueError("arm.realtime: must be false in mode fcisim (franky-sim is no real-time "
+                                 "controller, and libfranka would take a core at real-time priority)")
+            if self.fcisim.simulator == "embedded" and not _is_loopback(arm.host):
+                raise ValueError(f"arm.host: with fcisim.simulator embedded the simulator binds a loopback address "
+                                 f"(the first free one from arm.host on); got {arm.host!r}, use e.g. 127.0.0.1")
+        return self
+
+
+def _is_loopback(host: str) -> bool:
+    import ipaddress
+
+    try:
+        return ipaddress.ip_address(host).is_loopback and ipaddress.ip_address(host).version == 4
+    except ValueError:
+        return False
 
 
 DEFAULT_CELL_CONFIG = CONFIG_DIR / "cell.sim.yaml"
@@ -84,4 +148,9 @@ DEFAULT_CELL_CONFIG = CONFIG_DIR / "cell.sim.yaml"
 def load_cell_config(path: str | Path | None = None) -> tuple[CellConfig, Path]:
     """The config and the file it came from (relative paths inside it resolve against that file)."""
     p = Path(path) if path else DEFAULT_CELL_CONFIG
-    return load_yaml_model(p, CellConfig), p  # type: ignore[return-value]
+    cfg: CellConfig = load_yaml_model(p, CellConfig)  # type: ignore[assignment]
+    if cfg.hand_eye_file:
+        cfg.twin.hand_eye = HandEyeConfig.from_file(p.parent / cfg.hand_eye_file, ConfigError)
+        if cfg.arm is not None:  # the calibration is the camera's pose on the real flange too
+            cfg.arm = cfg.arm.model_copy(update={"hand_eye": HandEye(**cfg.twin.hand_eye.model_dump())})
+    return cfg, p

@@ -104,6 +104,10 @@ class ScanResult:
     coverage_percent: float = 0.0
     terminated_by: str = ""
     motion_contacts: int = 0  # robot-scene contacts the twin reported over all moves (twin only)
+    # the arm's joint tracking error (max |commanded - measured|, rad) over every move, initial one included:
+    # the twin's position control (a few mrad) or the franky arm's controller (franky-sim lags 0.1 rad per rad/s)
+    tracking_error_max_rad: float | None = None
+    tracking_error_median_rad: float | None = None
     cut: dict | None = None  # the cutting path's summary (cellctl.cut.CutSummary), when one was planned
     error: str | None = None
     arm_stopped: bool | None = None  # after an error: whether the arm acknowledged stop() (None: no error)
@@ -149,6 +153,7 @@ class ScanJob:
         self.self_filtered = 0  # points dropped because they lay on the arm
         self.last_reach_error_m = self.last_reach_error_deg = 0.0
         self.last_contacts: list[dict] = []
+        self.tracking_errors: list[float] = []  # what arm.execute() returned, per move
         self.first_color: np.ndarray | None = None  # the initial view, for the run folder's picture
         intr = camera.intrinsics
         self.K = intr.matrix()
@@ -167,6 +172,7 @@ class ScanJob:
         plan_s = time.perf_counter() - t0
         path = mv.path
         err = self.arm.execute(JointTrajectory(path.times, path.positions, path.velocities))
+        self.tracking_errors.append(float(err))
         self.last_contacts = list(getattr(self.arm, "last_motion_contacts", []))  # the twin's own check
         # Did the camera get there? A view from elsewhere (the arm stopped or deflected on the way)
         # must not count as the planned one.
@@ -318,6 +324,9 @@ class ScanJob:
             res.steps = len(res.records)
             res.displacement_m = displacement(np.array(res.viewpoints)) if res.viewpoints else 0.0
             res.step_s = res.planning_s / max(res.steps - 1, 1) if res.steps else 0.0  # eq. 11: per viewpoint
+            if self.tracking_errors:
+                res.tracking_error_max_rad = round(float(np.max(self.tracking_errors)), 5)
+                res.tracking_error_median_rad = round(float(np.median(self.tracking_errors)), 5)
         return res
 
     def _explore(self, res: ScanResult, initial_pose: np.ndarray, gt_points: np.ndarray | None) -> None:

@@ -1,4 +1,6 @@
-"""A scan in the twin from the command line: build the twin, run the job, write the run folder."""
+"""A scan job from the command line or the service: open the cell's devices (cellctl.devices: the twin in
+mode sim, franky-sim + the twin's renderer in fcisim, the Franka + D435 in real), run the job, write the
+run folder."""
 
 from __future__ import annotations
 
@@ -13,27 +15,28 @@ import numpy as np
 from cellctl.artifacts import new_run_dir, save_png, write_json, write_ply
 from cellctl.config import CellConfig
 from cellctl.cut import dry_run_cut, plan_cut, write_trajectory
+from cellctl.devices import open_devices
 from cellctl.plots import coverage_figure
 from cellctl.recording import ScanRecorder
 from cellctl.scan import ScanJob, ScanResult, StepRecord
+from drivers.interfaces import Arm
 from planners.config import load_planners_config
 from sim.scenes import load_scene
-from sim.twin import Twin
 
 
-def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, twin: Twin, run_dir: Path, recorder: ScanRecorder,
+def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, arm: Arm, run_dir: Path, recorder: ScanRecorder,
                result: ScanResult, dry_run: bool, progress: bool) -> None:
     """planning-cut: the drawing becomes cut_path.json/.csv and cut_trajectory.npz; optionally the
-    twin runs it (torch off) and the tip's tracking is measured."""
+    arm runs it (torch off) and the tip's tracking is measured."""
     viewpoint = np.array(result.viewpoints[0]) if result.viewpoints else None
-    path, summary, kin = plan_cut(twin.arm, cfg.motion.collision, pcfg.cutpath, job.grid, job.drawing, job.surface,
+    path, summary, kin = plan_cut(arm, cfg.motion.collision, pcfg.cutpath, job.grid, job.drawing, job.surface,
                                   viewpoint)
     if path is not None:
         path.write(run_dir)
         write_trajectory(path, run_dir / "cut_trajectory.npz")
         recorder.log_cut(len(result.records), path)
         if dry_run:
-            summary.dry_run = dry_run_cut(twin.arm, kin, path)
+            summary.dry_run = dry_run_cut(arm, kin, path)
     result.cut = asdict(summary)
     if progress:
         print(f"cut path: {summary.feasible_branches}/{summary.branches} branches feasible, "
@@ -47,10 +50,13 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
                      progress: bool = True, cut: bool = True, dry_run_cut: bool = False,
                      run_dir: Path | None = None, cancel: threading.Event | None = None,
                      on_step: Callable[[StepRecord], None] | None = None,
-                     on_phase: Callable[[str], None] | None = None) -> tuple[ScanResult, Path]:
-    """``run_dir``: write into this folder (the service's per-job folder) instead of a new stamped one
-    under ``out``. ``cancel``: set from another thread to end the scan early ("cancelled", partial
-    result kept, no cut). ``on_step`` gets every StepRecord, ``on_phase`` "scanning" / "planning-cut"."""
+                     on_phase: Callable[[str], None] | None = None,
+                     arm_host: str | None = None) -> tuple[ScanResult, Path]:
+    """One job on the devices of ``cfg.mode`` (cellctl.devices.open_devices; ``arm_host``: fcisim, a
+    franky-sim already running there). ``run_dir``: write into this folder (the service's per-job
+    folder) instead of a new stamped one under ``out``. ``cancel``: set from another thread to end the
+    scan early ("cancelled", partial result kept, no cut). ``on_step`` gets every StepRecord,
+    ``on_phase`` "scanning" / "planning-cut"."""
     pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
     if max_steps is not None:
         pcfg = pcfg.model_copy(update={"max_steps": max_steps})
@@ -76,19 +82,18 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
     unsaved: list[str] = []
     try:  # whatever happens, the run folder ends with a result.json and a closed recording
         try:
-            with Twin(scene, twin_cfg) as twin:
-                scene = twin.scene  # as placed in the twin (a fault may have moved it)
+            with open_devices(cfg, scene, twin_cfg, run_dir=run_dir, arm_host=arm_host) as dev:
+                scene = dev.scene  # as placed in the twin (a fault may have moved it)
                 recorder.log_scene(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points)
-                job = ScanJob(twin.arm, twin.camera, planner, pcfg, cfg.motion, recorder, report,
+                job = ScanJob(dev.arm, dev.camera, planner, pcfg, cfg.motion, recorder, report,
                               park_q=twin_cfg.home_q, cancel=cancel)
-                twin.arm.reset(twin_cfg.home_q)
                 if on_phase:
                     on_phase("scanning")
                 result = job.run(scene.name, scene.initial_view_candidates, scene.gt_points)
                 if cut and result.error is None and not job.cancelled() and len(job.drawing):
                     if on_phase:
                         on_phase("planning-cut")
-                    _cut_phase(job, pcfg, cfg, twin, run_dir, recorder, result, dry_run_cut, progress)
+                    _cut_phase(job, pcfg, cfg, dev.arm, run_dir, recorder, result, dry_run_cut, progress)
         finally:  # what the scan saw is kept, also when the cut phase or the twin failed afterwards
             if job is not None:
                 unsaved = _keep_views(job, run_dir, scene, pcfg, planner, result)
@@ -101,7 +106,7 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
         result.terminated_by = result.terminated_by or "error"
         raise
     finally:
-        write_json(run_dir / "result.json", {"schema_version": 1, "cell_id": cfg.cell_id,
+        write_json(run_dir / "result.json", {"schema_version": 1, "cell_id": cfg.cell_id, "mode": cfg.mode,
                                              "scene_ref": scene_ref, **result.to_dict()})
         recorder.close()
     return result, run_dir

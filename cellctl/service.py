@@ -30,10 +30,12 @@ from cellctl.api import (MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, ApiError, Artifac
 from cellctl.artifacts import _default as _json_default
 from cellctl.client import zenoh_error
 from cellctl.config import CellConfig, ServiceConfig
+from cellctl.devices import describe as describe_devices
 from cellctl.store import JobStore, StoreError, now_iso
 
 log = logging.getLogger("cellctl.service")
 JSON = zenoh.Encoding.APPLICATION_JSON
+READINESS_PERIOD_S = 10.0  # fcisim/real: the arm and camera are probed this often while no job runs
 
 
 def version() -> str:
@@ -118,6 +120,15 @@ class CellService:
         self._lock_file = None
         self.started_at = now_iso()
         self._t0 = time.monotonic()
+        # devices (fcisim, real): probed at start, then by a watcher thread; one holder at a time, because a
+        # Franka takes one FCI client (a probe must not connect while a job holds the arm)
+        self.arm_host: str | None = None  # fcisim embedded: where the service's own franky-sim serves
+        self._franky_sim = None
+        self._sim_error: str | None = None
+        self._readiness = None
+        self._devices_lock = threading.Lock()
+        self._recheck = threading.Event()
+        self._watcher: threading.Thread | None = None
 
     def job_dir(self, job_id: str) -> Path:
         return self.data_dir / "jobs" / job_id
@@ -126,8 +137,16 @@ class CellService:
     def start(self) -> None:
         """Mark what a previous process left unfinished as interrupted, open the session, declare the
         API, start the worker. On any failure the session is closed again."""
+        if self.scfg.job_profile != "scan" and self.cfg.mode != "sim":  # a load-test job on a real arm: never
+            raise ServiceError(f"service.job_profile {self.scfg.job_profile} is for load tests in the twin; "
+                               f"mode {self.cfg.mode} needs job_profile scan")
         self._lock_data_dir()
         recovered = self.store.interrupt_unfinished("the service stopped before the job ended")
+        try:
+            self._start_devices()
+        except BaseException:
+            self.close()
+            raise
         self.session = zenoh.open(zenoh_config(self.scfg, self.cfg_path.parent, listen=self.listen,
                                                connect=self.connect))
         try:
@@ -140,6 +159,9 @@ class CellService:
                 self._emit(job_id, "interrupted", "interrupted", message="the service stopped before the job ended")
             self._worker = threading.Thread(target=self._work, name="cell-worker", daemon=True)
             self._worker.start()
+            if self.cfg.mode != "sim":
+                self._watcher = threading.Thread(target=self._watch_devices, name="cell-devices", daemon=True)
+                self._watcher.start()
             with self._cv:
                 self._accepting = True
             self._declared.append(s.liveliness().declare_token(k.alive))  # last: alive means ready
@@ -171,6 +193,7 @@ class CellService:
         with self._cv:
             self._accepting = False
             self._stopping.set()
+            self._recheck.set()  # the device watcher ends
             queued = list(self._queue)
             self._queue.clear()
             running = self._running
@@ -200,6 +223,15 @@ class CellService:
                 self.session.close()
             finally:
                 self.session = None
+        self._stopping.set()
+        self._recheck.set()
+        if self._watcher is not None:  # a probe in flight ends within its timeouts; a process leaving
+            # while libfranka or librealsense threads run is aborted by the C++ runtime
+            self._watcher.join(2.0 * self.cfg.arm.connect_timeout_s + 15.0 if self.cfg.arm else 15.0)
+            self._watcher = None
+        if self._franky_sim is not None:
+            self._franky_sim.close()
+            self._franky_sim = None
         self.store.close()
         if self._lock_file is not None:
             self._lock_file.close()  # releases the flock
@@ -255,9 +287,13 @@ class CellService:
     def status(self) -> CellStatus:
         with self._cv:
             queue_length, running, accepting = len(self._queue), self._running, self._accepting
-        ok = find_spec("pybullet") is not None
-        return CellStatus(cell_id=self.cfg.cell_id, version=version(), mode=self.cfg.mode, arm_ready=ok,
-                          camera_ready=ok, devices="pybullet twin (arm and D435), built per job",
+        rd = self.readiness()
+        devices = describe_devices(self.cfg, self.arm_host)
+        if self.scfg.job_profile != "scan":  # a load-test cell must not pass for a scanning one
+            devices += f"; job profile {self.scfg.job_profile}: one view, no motion, no cut"
+        return CellStatus(cell_id=self.cfg.cell_id, version=version(), mode=self.cfg.mode, arm_ready=rd.arm_ready,
+                          camera_ready=rd.camera_ready, ready=rd.ready,
+                          not_ready_reason=rd.reason[:1000] if rd.reason else None, devices=devices[:200],
                           accepting_jobs=accepting, queue_length=queue_length, queue_max=self.scfg.queue_max,
                           running_job=running.job_id if running else None, jobs_total=self.store.count(),
                           started_at=self.started_at, uptime_s=round(time.monotonic() - self._t0, 3))
@@ -267,6 +303,12 @@ class CellService:
         with self._cv:
             if not self._accepting:
                 raise ApiError("shutting_down", "the service is stopping and takes no new jobs")
+            rd = self.readiness()
+            if not rd.ready:  # refused before anything is stored: the tablet keeps the job and submits again
+                self._recheck.set()
+                raise ApiError("cell_not_ready", f"the cell is not ready, nothing was queued: {rd.reason}; submit "
+                               f"again once status shows ready (the devices are checked every "
+                               f"{READINESS_PERIOD_S:g} s)"[:2000])
             if len(self._queue) >= self.scfg.queue_max:
                 raise ApiError("queue_full", f"{len(self._queue)} jobs are waiting (service.queue_max = "
                                f"{self.scfg.queue_max}); submit again when one has started")
@@ -322,6 +364,74 @@ class CellService:
         raise ApiError("invalid_request", f"scene: unknown scene {scene!r}; built-in: {', '.join(SCENE_NAMES)}",
                        [_detail("scene", "unknown scene")])
 
+    # --- devices ----------------------------------------------------------------------------------
+    def _start_devices(self) -> None:
+        """fcisim with an embedded simulator: start the cell's franky-sim (it lives as long as the service,
+        like a robot, so the arm keeps its pose between jobs and can be probed). Then the first readiness
+        check, before the cell answers anyone."""
+        if self.cfg.mode == "fcisim" and self.cfg.fcisim.simulator == "embedded":
+            from cellctl.fcisim import FrankySim
+            from drivers.interfaces import DeviceError
+
+            sim = FrankySim(self.cfg.arm.host, self.cfg.twin.home_q, self.cfg.fcisim.start_timeout_s)
+            try:
+                self.arm_host = sim.start()
+                self._franky_sim = sim
+                log.info("franky-sim serves the fcisim arm at %s", self.arm_host)
+            except (DeviceError, OSError) as e:  # the cell serves anyway and says why it is not ready
+                self._sim_error = f"the embedded franky-sim did not start: {e}"
+                log.error("%s", self._sim_error)
+        self._refresh_readiness()
+
+    def readiness(self):
+        rd = self._readiness
+        if rd is None:  # sim (static), or before the first check
+            from cellctl.devices import Readiness
+
+            ok = find_spec("pybullet") is not None
+            if self.cfg.mode == "sim":
+                return Readiness(ok, ok, "pybullet twin", "pybullet twin")
+            return Readiness(False, False, "not checked yet", "not checked yet")
+        return rd
+
+    def _refresh_readiness(self, *, blocking: bool = True) -> None:
+        from cellctl.devices import check_readiness
+
+        if self.cfg.mode == "sim":
+            return
+        if not self._devices_lock.acquire(blocking=blocking):
+            return  # a job holds the devices: its own outcome tells
+        try:
+            sim = self._franky_sim
+            if sim is not None and not sim.alive():  # our own robot is gone: say so, not "FCI inactive"
+                status = getattr(sim.proc, "returncode", None)
+                self._sim_error = f"the embedded franky-sim exited (status {status}); restart the service"
+            if self._sim_error:
+                from cellctl.devices import Readiness
+
+                rd = Readiness(False, True, self._sim_error, "twin renderer posed from the arm")
+            else:
+                rd = check_readiness(self.cfg, self.arm_host)
+        finally:
+            self._devices_lock.release()
+        if rd != self._readiness:
+            (log.info if rd.ready else log.warning)("cell %s: %s", "ready" if rd.ready else "not ready",
+                                                    f"arm: {rd.arm}; camera: {rd.camera}")
+        self._readiness = rd
+
+    def _watch_devices(self) -> None:
+        """Re-probe every READINESS_PERIOD_S while no job runs, and at once when poked (a refused submit,
+        a finished job): a robot switched on, or an unplugged camera, shows in the status."""
+        while not self._stopping.is_set():
+            self._recheck.wait(READINESS_PERIOD_S)
+            self._recheck.clear()
+            if self._stopping.is_set():
+                return
+            try:
+                self._refresh_readiness(blocking=False)
+            except Exception:  # noqa: BLE001 - the watcher must outlive one bad probe
+                log.exception("checking the devices failed")
+
     # --- events -----------------------------------------------------------------------------------
     def _emit(self, job_id: str, phase: str, state: str, *, step: int | None = None, max_steps: int | None = None,
               coverage_percent: float | None = None, drawing_points: int | None = None,
@@ -369,7 +479,8 @@ class CellService:
                 ctl = self._running = JobControl(job_id)
                 self.store.transition(job_id, "running")
             try:
-                self._run(ctl)
+                with self._devices_lock:
+                    self._run(ctl)
             except Exception:  # noqa: BLE001 - the worker must outlive any one job
                 log.exception("job %s: the worker failed", job_id)
                 self._finish(job_id, "failed", "internal error in the service", error="internal error; see the "
@@ -377,10 +488,12 @@ class CellService:
             finally:
                 with self._cv:
                     self._running = None
+                self._recheck.set()  # the job may have found the arm or camera gone
 
     def _run(self, ctl: JobControl) -> None:
         from cellctl.scan import StepRecord
         from cellctl.scan_run import run_scan_in_twin
+        from cellctl.view_job import run_initial_view
 
         job_id = ctl.job_id
         rec = self.store.get(job_id)
@@ -403,11 +516,15 @@ class CellService:
         timer.start()
         result, error = None, None
         try:
-            if not ctl.cancel.is_set():
+            if not ctl.cancel.is_set() and self.scfg.job_profile == "initial_view":
+                result = run_initial_view(self.cfg, self.cfg_path, req.scene, req.planner, seed=req.seed,
+                                          noise=req.noise, run_dir=job_dir, cancel=ctl.cancel, on_step=on_step)
+                error = result.error
+            elif not ctl.cancel.is_set():
                 result, _ = run_scan_in_twin(self.cfg, self.cfg_path, req.scene, req.planner, seed=req.seed,
                                              noise=req.noise, max_steps=req.max_steps, progress=False, cut=True,
                                              dry_run_cut=req.dry_run_cut, run_dir=job_dir, cancel=ctl.cancel,
-                                             on_step=on_step, on_phase=on_phase)
+                                             on_step=on_step, on_phase=on_phase, arm_host=self.arm_host)
                 error = result.error
         except Exception as e:  # noqa: BLE001 - a failed job, not a failed service
             error = f"{type(e).__name__}: {e}"

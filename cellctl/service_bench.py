@@ -31,9 +31,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def write_config(path: Path, port: int, data_dir: Path, *, cell_id: str = "sim-1", **service) -> Path:
-    """The sim cell config with a loopback listen endpoint, a data dir and any service overrides."""
-    doc = yaml.safe_load((CONFIG_DIR / "cell.sim.yaml").read_text())
+def write_config(path: Path, port: int, data_dir: Path, *, cell_id: str = "sim-1", cell: dict | None = None,
+                 **service) -> Path:
+    """The sim cell config with a loopback listen endpoint, a data dir and any service overrides;
+    ``cell`` is merged into the rest of the config (e.g. ``{"twin": {"execution": "teleport"}}``)."""
+    doc = _merge(yaml.safe_load((CONFIG_DIR / "cell.sim.yaml").read_text()), cell or {})
     doc["cell_id"] = cell_id
     doc["planners_config"] = str(CONFIG_DIR / doc.get("planners_config", "planners.yaml"))
     doc["service"] = {**doc.get("service", {}), "data_dir": str(data_dir), "zenoh_mode": "peer",
@@ -42,17 +44,26 @@ def write_config(path: Path, port: int, data_dir: Path, *, cell_id: str = "sim-1
     return path
 
 
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
 class ServiceProcess:
     """`python -m cellctl.cli serve` as a subprocess on a loopback port; stop() by signal, timed."""
 
-    def __init__(self, workdir: Path, *, port: int | None = None, cell_id: str = "sim-1", **service):
+    def __init__(self, workdir: Path, *, port: int | None = None, cell_id: str = "sim-1", cell: dict | None = None,
+                 **service):
         self.workdir = Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.port = port or free_port()
         self.cell_id = cell_id
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         self.data_dir = self.workdir / "data"
-        self.config = write_config(self.workdir / "cell.yaml", self.port, self.data_dir, cell_id=cell_id, **service)
+        self.config = write_config(self.workdir / "cell.yaml", self.port, self.data_dir, cell_id=cell_id, cell=cell,
+                                   **service)
         self.proc: subprocess.Popen | None = None
         self.log = self.workdir / "service.log"
         self.startup_s: float | None = None
@@ -64,19 +75,23 @@ class ServiceProcess:
         with open(self.log, "ab") as log:
             self.proc = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "serve", "--config", str(self.config)],
                                          cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-        while time.monotonic() - t0 < timeout_s:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"the service exited with {self.proc.returncode}:\n{self.log.read_text()[-3000:]}")
-            try:
-                with CellClient(self.cell_id, [self.endpoint], timeout_s=1.0) as c:
-                    c.status()
-                    if c.alive():
-                        self.startup_s = time.monotonic() - t0
-                        return self
-            except (CellUnreachable, NoReply):
-                time.sleep(0.1)
-        self.kill()
-        raise TimeoutError(f"the service did not answer within {timeout_s} s:\n{self.log.read_text()[-3000:]}")
+        try:
+            while time.monotonic() - t0 < timeout_s:
+                if self.proc.poll() is not None:
+                    raise RuntimeError(f"the service exited with {self.proc.returncode}:\n"
+                                       f"{self.log.read_text()[-3000:]}")
+                try:
+                    with CellClient(self.cell_id, [self.endpoint], timeout_s=1.0) as c:
+                        c.status()
+                        if c.alive():
+                            self.startup_s = time.monotonic() - t0
+                            return self
+                except (CellUnreachable, NoReply):
+                    time.sleep(0.1)
+            raise TimeoutError(f"the service did not answer within {timeout_s} s:\n{self.log.read_text()[-3000:]}")
+        except BaseException:  # e.g. a reply this client's API refuses: the caller never gets the process to stop
+            self.kill()
+            raise
 
     def client(self, timeout_s: float = 5.0):
         from cellctl.client import CellClient

@@ -221,6 +221,27 @@ class TwinArm:
             self._set_state(q)
             self._hold(q)
 
+    def mirror(self, samples) -> list[dict]:
+        """Twin only: pose the robot at the measured joints of another arm (``(7,)``, or ``(T, 7)``
+        visited in order) and return the robot-scene contacts seen on the way (as
+        ``last_motion_contacts``). Why: a cell whose arm is real or franky-sim still renders its
+        camera and checks contacts here, so the robot in the picture must be where that arm is. No
+        limit check (that arm enforces its own, e.g. the FR3's joint 7 range exceeds this URDF's);
+        the simulation is not stepped. ValueError for a non-finite or malformed sample."""
+        Q = np.atleast_2d(np.asarray(samples, dtype=np.float64))
+        if Q.ndim != 2 or Q.shape[1] != 7 or len(Q) == 0 or not np.all(np.isfinite(Q)):
+            raise ValueError(f"mirror() needs finite joint samples of shape (7,) or (T, 7), got {Q.shape}")
+        self.last_motion_contacts = []
+        with self._sim.lock:
+            self._sim.check()
+            for k, q in enumerate(Q):
+                self._set_state(q)
+                if len(Q) > 1:
+                    p.performCollisionDetection(physicsClientId=self._sim.client)
+                    self._note_contacts(k)
+            self._hold(Q[-1])
+        return self.last_motion_contacts
+
     # ------------------------------------------------------------------ internals
     def _set_state(self, q: np.ndarray) -> None:
         c, robot = self._sim.client, self._sim.robot

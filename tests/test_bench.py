@@ -288,3 +288,18 @@ def test_progress_eta_per_planner():
                      "coverage": {"percent": 0.0}, "planning_s": 0.0})
     last = err.getvalue().splitlines()[-1]
     assert "3/5" in last and "ERROR planner 'x'" in last and "ETA 5:10" in last  # 10 s + 300 s left
+
+
+def test_scoring_bench_compares_exact_and_coarse_to_fine_on_the_same_states(tmp_path):
+    """`cellctl bench --scoring` on one scene: both scorings plan from the same two states; the report
+    says how much faster and whether the best view changed (the figure itself is not asserted)."""
+    r = subprocess.run([sys.executable, "-m", "cellctl.cli", "bench", "--scoring", "--scenes", "smooth_cylinder",
+                        "--seeds", "1", "--out", str(tmp_path)], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads((tmp_path / "scoring.json").read_text())
+    assert doc["states"] == len(doc["rows"]) == 2 and [row["step"] for row in doc["rows"]] == [0, 1]
+    for row in doc["rows"]:
+        assert row["exact_s"] > 0 and row["coarse_to_fine_s"] > 0
+        assert row["best_gain_exact"] > 0 and row["best_gain_coarse_to_fine"] > 0
+        assert row["same_best_view"] == (row["best_view_offset_m"] == 0.0)
+    assert "| smooth_cylinder | 1 |" in (tmp_path / "scoring.md").read_text()

@@ -1,0 +1,242 @@
+"""Per cell mode, the arm and the camera a scan job drives (behind ``drivers.interfaces.Arm`` /
+``RGBDCamera``), opened and closed in one place, and whether they are ready.
+
+- sim: the pybullet twin's arm and camera (the twin moves and sees).
+- fcisim: the franky adapter (``drivers.panda.FrankaArm``) connected to franky-sim (a MuJoCo FR3 behind
+  libfranka's protocol; embedded = a child process this module starts, or one already running at
+  ``arm.host``), and the twin's renderer, whose pybullet robot is set to the franky arm's *measured* joints
+  before every capture: the picture, the robot in it (which the scan's self-filter removes) and the scene
+  geometry are where the arm really is. After every motion the twin also replays the measured joints
+  against the scene and reports contacts, as it does for its own motions. The scene (objects, ground
+  truth, initial view candidates) is the twin's.
+- real: FrankaArm + the live D435 (``drivers.realsense``); the scene file gives the initial view
+  candidates and the expected drawing.
+"""
+
+from __future__ import annotations
+
+import threading
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass
+from importlib.util import find_spec
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from cellctl.config import CellConfig
+from drivers.interfaces import Arm, DeviceError, JointTrajectory, RGBDCamera, RGBDFrame
+from sim.config import HandEyeConfig, TwinConfig
+from sim.scenes.model import Scene
+
+MIRROR_STEP_RAD = 0.01  # replaying a measured motion in the twin: joint step between contact checks
+
+
+@dataclass
+class Devices:
+    """What one job drives. ``twin`` is None in mode real; ``scene`` is the scene as placed in the twin
+    (a fault may move it) or, in mode real, as loaded."""
+
+    mode: str
+    arm: Arm
+    camera: RGBDCamera
+    scene: Scene
+    twin: object | None
+    description: str
+
+
+def describe(cfg: CellConfig, arm_host: str | None = None) -> str:
+    """One line for the status (at most 200 characters): what drives the arm and the camera."""
+    if cfg.mode == "sim":
+        return "pybullet twin (arm and D435), built per job"
+    arm = cfg.arm
+    host = arm_host or arm.host
+    if cfg.mode == "fcisim":
+        where = "embedded" if cfg.fcisim.simulator == "embedded" else "external"
+        return f"franky {arm.model} on franky-sim ({where}, {host}); camera: twin renderer posed from the arm"[:200]
+    cam = cfg.camera
+    return (f"franky {arm.model} at {host}; RealSense D435 {cam.serial or '(first found)'} "
+            f"{cam.color_width}x{cam.color_height}@{cam.fps}")[:200]
+
+
+def twin_config_for(cfg: CellConfig, twin_cfg: TwinConfig) -> TwinConfig:
+    """fcisim renders with the arm's hand-eye: the camera_pose() the scan plans with (the arm's FK +
+    arm.hand_eye) and the pose the twin renders from must be one."""
+    if cfg.mode == "fcisim":
+        return twin_cfg.model_copy(update={"hand_eye": HandEyeConfig(**cfg.arm.hand_eye.model_dump())})
+    return twin_cfg
+
+
+@contextmanager
+def open_devices(cfg: CellConfig, scene: Scene, twin_cfg: TwinConfig, *, run_dir: Path | None = None,
+                 arm_host: str | None = None) -> Iterator[Devices]:
+    """The cell's arm and camera for one job, closed on the way out (also on errors). ``arm_host``:
+    fcisim, a franky-sim already running there (the service's own) instead of the config's choice.
+    ``run_dir``: real, where a camera with ``keep_view_bags`` records ``views.bag``. DeviceError with
+    the adapter's explanation when a device cannot be opened."""
+    if cfg.mode == "sim":
+        from sim.twin import Twin
+
+        with Twin(scene, twin_cfg) as twin:
+            twin.arm.reset(twin_cfg.home_q)
+            yield Devices("sim", twin.arm, twin.camera, twin.scene, twin, describe(cfg))
+        return
+    from drivers.panda import FrankaArm
+
+    with ExitStack() as stack:
+        if cfg.mode == "fcisim":
+            from sim.twin import Twin
+
+            host = arm_host
+            if host is None and cfg.fcisim.simulator == "embedded":
+                from cellctl.fcisim import FrankySim
+
+                host = stack.enter_context(FrankySim(cfg.arm.host, twin_cfg.home_q, cfg.fcisim.start_timeout_s)).host
+            arm_cfg = cfg.arm.model_copy(update={"host": host or cfg.arm.host})
+            twin = stack.enter_context(Twin(scene, twin_config_for(cfg, twin_cfg)))
+            franky = stack.enter_context(FrankaArm(arm_cfg))
+            arm = TwinCheckedArm(franky, twin.arm)
+            camera = MirroredCamera(twin.camera, twin.arm, franky)
+            camera.sync()
+            yield Devices("fcisim", arm, camera, twin.scene, twin, describe(cfg, arm_cfg.host))
+            return
+        from drivers.realsense import open_camera
+
+        franky = stack.enter_context(FrankaArm(cfg.arm))
+        rec = {}
+        if cfg.camera.keep_view_bags and run_dir is not None:
+            rec = {"record_to": Path(run_dir) / "views.bag", "record": "views"}
+        camera = stack.enter_context(open_camera(cfg.camera, **rec))
+        yield Devices("real", franky, camera, scene, None, describe(cfg))
+
+
+class MirroredCamera:
+    """The twin's D435 rendering from wherever the real (or franky-sim) arm measures it is: the twin's
+    robot is set to the arm's joints before each capture (implements ``RGBDCamera``)."""
+
+    def __init__(self, twin_camera: RGBDCamera, twin_arm, arm: Arm) -> None:
+        self._camera, self._twin_arm, self._arm = twin_camera, twin_arm, arm
+        self.intrinsics = twin_camera.intrinsics
+        self._lock = threading.Lock()
+
+    def sync(self) -> np.ndarray:
+        """Pose the twin's robot at the arm's measured joints; returns them."""
+        q = self._arm.joint_positions()
+        self._twin_arm.mirror(q)
+        return q
+
+    def capture(self) -> RGBDFrame:
+        with self._lock:
+            self.sync()
+            return self._camera.capture()
+
+    def __getattr__(self, name: str):  # twin extras (last_truth, render_truth, ...)
+        return getattr(self._camera, name)
+
+
+class TwinCheckedArm:
+    """The franky arm, plus the twin's own contact check of what it did: after each ``execute()`` the
+    measured joints are replayed on the twin's robot against the scene (``last_motion_contacts``, as
+    the twin reports for its own motions), and the twin's robot is left where the arm is. Everything
+    else is the franky arm's (implements ``Arm``)."""
+
+    def __init__(self, arm, twin_arm) -> None:
+        self._arm, self._twin_arm = arm, twin_arm
+        self.model = arm.model
+        self.last_motion_contacts: list[dict] = []
+
+    def joint_positions(self) -> np.ndarray:
+        return self._arm.joint_positions()
+
+    def camera_pose(self) -> np.ndarray:
+        return self._arm.camera_pose()
+
+    def stop(self) -> None:
+        self._arm.stop()
+
+    def execute(self, trajectory: JointTrajectory) -> float:
+        self.last_motion_contacts = []
+        sent = self._arm.motions_sent
+        try:
+            return self._arm.execute(trajectory)
+        finally:
+            if self._arm.motions_sent != sent:  # something moved (refusals move nothing)
+                self._replay()
+
+    def _replay(self) -> None:
+        try:
+            Q = np.asarray(self._arm.last_motion_actual, dtype=np.float64).reshape(-1, 7)
+            Q = np.vstack([Q, self._arm.joint_positions()])
+            keep = [0]
+            for k in range(1, len(Q)):  # samples MIRROR_STEP_RAD apart, and the last
+                if np.max(np.abs(Q[k] - Q[keep[-1]])) >= MIRROR_STEP_RAD:
+                    keep.append(k)
+            if keep[-1] != len(Q) - 1:
+                keep.append(len(Q) - 1)
+            self.last_motion_contacts = list(self._twin_arm.mirror(Q[keep]))
+        except (DeviceError, ValueError):  # the arm's own error is what the caller must see
+            pass
+
+    def __getattr__(self, name: str):  # recover(), events, last_motion, last_motion_desired/actual, ...
+        return getattr(self._arm, name)
+
+
+# --- readiness ------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Readiness:
+    """Whether a job could start now, and if not, why (for the status and the submit refusal)."""
+
+    arm_ready: bool
+    camera_ready: bool
+    arm: str
+    camera: str
+
+    @property
+    def ready(self) -> bool:
+        return self.arm_ready and self.camera_ready
+
+    @property
+    def reason(self) -> str | None:
+        if self.ready:
+            return None
+        parts = ([f"arm: {self.arm}"] if not self.arm_ready else []) + \
+                ([f"camera: {self.camera}"] if not self.camera_ready else [])
+        return "; ".join(parts)
+
+
+def check_readiness(cfg: CellConfig, arm_host: str | None = None) -> Readiness:
+    """Never raises. sim: pybullet is there. fcisim: the franky-sim robot answers (``drivers.panda.probe``
+    connects once) and the twin can render. real: the Franka answers and the configured D435 is
+    connected with its modes (``drivers.realsense.check_devices``). Takes up to ``arm.connect_timeout_s``
+    twice (TCP connect, then the handshake) for an unreachable robot."""
+    twin_ok = find_spec("pybullet") is not None
+    twin_msg = "pybullet twin" if twin_ok else "pybullet is not installed (pip install -e .)"
+    if cfg.mode == "sim":
+        return Readiness(twin_ok, twin_ok, twin_msg, twin_msg)
+    from drivers.panda import probe
+
+    arm_cfg = cfg.arm.model_copy(update={"host": arm_host}) if arm_host else cfg.arm
+    try:
+        st = probe(arm_cfg)
+        arm_ok, arm_msg = st.ready, st.message
+    except Exception as e:  # noqa: BLE001 - probe() reports DeviceErrors; anything else is still "not ready"
+        arm_ok, arm_msg = False, f"probing the arm failed: {type(e).__name__}: {e}"
+    if cfg.mode == "fcisim":
+        return Readiness(arm_ok, twin_ok, arm_msg, "twin renderer posed from the arm" if twin_ok else twin_msg)
+    cam_ok, cam_msg = camera_readiness(cfg.camera)
+    return Readiness(arm_ok, cam_ok, arm_msg, cam_msg)
+
+
+def camera_readiness(camera_cfg) -> tuple[bool, str]:
+    """(ready, message) of the configured D435; never raises (a broken Open3D/libusb install is a reason)."""
+    try:
+        from drivers.realsense import check_devices, list_devices
+
+        devices = list_devices()
+        problems = check_devices(camera_cfg, devices)
+    except Exception as e:  # noqa: BLE001 - e.g. libusb missing: Open3D does not load
+        return False, f"cannot enumerate RealSense devices: {type(e).__name__}: {e}"
+    if problems:
+        return False, "; ".join(problems)
+    chosen = next((d for d in devices if d.serial == camera_cfg.serial), devices[0])
+    return True, f"{chosen.name} {chosen.serial}"
