@@ -112,6 +112,7 @@ class ScanResult:
     error: str | None = None
     arm_stopped: bool | None = None  # after an error: whether the arm acknowledged stop() (None: no error)
     incidents: list[dict] = field(default_factory=list)  # faults met on the way, recovered or not
+    arm_events: list[dict] = field(default_factory=list)  # what the arm itself logged during the job (Franka)
     viewpoints: list[list[float]] = field(default_factory=list)
     records: list[StepRecord] = field(default_factory=list)
 
@@ -150,6 +151,7 @@ class ScanJob:
         self.frames_without_depth = 0  # captures with no valid depth pixel since the last view that had one
         self.last_stamp: float | None = None  # timestamp of the last frame accepted or refused as empty
         self.incidents: list[dict] = []
+        self._arm_events_from = len(getattr(arm, "events", None) or [])  # the arm's own log (Franka: reflexes, recoveries)
         self.self_filtered = 0  # points dropped because they lay on the arm
         self.last_reach_error_m = self.last_reach_error_deg = 0.0
         self.last_contacts: list[dict] = []
@@ -237,12 +239,9 @@ class ScanJob:
 
     def _stop_arm(self, res: ScanResult) -> None:
         """After an error the arm must not be left moving: stop it and record that it answered."""
-        try:
-            self.arm.stop()
-            res.arm_stopped = True
-        except Exception as e:  # noqa: BLE001 - the error being reported matters more; note this one
-            res.arm_stopped = False
-            self._incident(len(res.records), "arm_stop_failed", f"{type(e).__name__}: {e}")
+        res.arm_stopped, notes = stop_and_recover(self.arm)
+        for what, detail in notes:
+            self._incident(len(res.records), what, detail)
 
     # --- perception -----------------------------------------------------------------------------
     def _process(self, frame, T_base_cam: np.ndarray, q: np.ndarray) -> Cloud:
@@ -319,6 +318,7 @@ class ScanJob:
         finally:
             done.set()
             res.incidents = self.incidents
+            res.arm_events = [dict(e) for e in (getattr(self.arm, "events", None) or [])[self._arm_events_from:]]
             cov = coverage(self.drawing.xyz, gt_points, self.pcfg.coverage_voxel_m)
             res.coverage_hit, res.coverage_total, res.coverage_percent = cov.hit, cov.total, round(cov.percent, 2)
             res.steps = len(res.records)
@@ -363,7 +363,8 @@ class ScanJob:
                 self.recorder.log_view(k, T, self.K, self.image_size, frame.color, frame.depth, cloud.xyz, cloud.rgb)
                 self.recorder.log_plan(k, plan.frontier, self.grid.voxel, plan.poses, plan.quality, plan.target,
                                        self.drawing.xyz)
-            if not plan.stop and not self.cancelled():  # a cancel during planning: no new move
+            last = k == self.pcfg.max_steps - 1  # the step limit: no view will be captured there, so no move
+            if not plan.stop and not last and not self.cancelled():  # a cancel during planning: no new move
                 plan = self._go(plan, state, rec)
             last_plan = plan
             res.planning_s += rec.planning_s
@@ -408,6 +409,28 @@ class ScanJob:
                 rec.planning_s += time.perf_counter() - t
         plan.stop, plan.reason = True, "unreachable"
         return plan
+
+
+def stop_and_recover(arm: Arm) -> tuple[bool, list[tuple[str, str]]]:
+    """Stop the arm; an arm that then needs recovery (a Franka after a reflex or a lost connection:
+    it refuses every motion until ``recover_from_errors``) is recovered now, so the cell can take the
+    next job, and the job records it. Returns (stopped, [(incident, detail)])."""
+    notes: list[tuple[str, str]] = []
+    try:
+        arm.stop()
+        stopped = True
+    except Exception as e:  # noqa: BLE001 - the error being reported matters more; note this one
+        stopped = False
+        notes.append(("arm_stop_failed", f"{type(e).__name__}: {e}"))
+    pending = getattr(arm, "needs_recovery", None)
+    if pending and callable(getattr(arm, "recover", None)):
+        try:
+            event = arm.recover()
+            notes.append(("arm_recovered", f"after {pending}: {event.get('message', '') if isinstance(event, dict) else ''}"
+                          .rstrip(": ")))
+        except Exception as e:  # noqa: BLE001 - recorded; the next job's execute() refuses clearly
+            notes.append(("arm_recovery_failed", f"after {pending}: {type(e).__name__}: {e}"))
+    return stopped, notes
 
 
 def _first(a: np.ndarray) -> float | None:
