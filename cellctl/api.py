@@ -22,7 +22,8 @@ LIST_LIMIT_MAX = 200
 CELL_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 # "<UTC time>-<random>": sorts by creation, is one key-expression chunk, cannot collide with "submit"
 JOB_ID_PATTERN = r"^[0-9]{8}T[0-9]{6}Z-[0-9a-f]{6}$"
-# a built-in scene name, or a scene .yaml path on the cell controller (twin only)
+# a built-in scene name, or a scene .yaml path on the cell controller (twin only; the service confines it to
+# service.scene_dirs)
 SCENE_PATTERN = r"^([a-z0-9_]{1,64}|[^\x00-\x1f\x7f]{1,500}\.ya?ml)$"
 
 PLANNER_NAMES = ("gnbv", "cnbv", "enpv", "global")  # cellctl.scan.PLANNERS (a test keeps them equal)
@@ -91,7 +92,10 @@ class ScanDrawingRequest(ApiModel):
     kind: Literal["scan_drawing"] = Field("scan_drawing", description="the only job kind so far")
     scene: str = Field(pattern=SCENE_PATTERN, max_length=500,
                        description="twin only: a built-in scene name (smooth_cylinder, ...) or the path of a "
-                                   "scene .yaml on the cell controller")
+                                   "scene .yaml on the cell controller (absolute, or relative to the service's "
+                                   "working directory) that lies, symlinks resolved, inside one of the cell's "
+                                   "scene directories (`service.scene_dirs`, by default `scenes/` beside the "
+                                   "cell config); any other path gets `invalid_request`, whether it exists or not")
     planner: Literal["gnbv", "cnbv", "enpv", "global"] = Field("gnbv", description="next-view planner")
     max_steps: int | None = Field(None, ge=1, le=200, description="views at most, initial one included "
                                   "(default: planners.yaml)")

@@ -159,10 +159,14 @@ command line: `cellctl submit|jobs|status --cell <cell_id> --connect <endpoint>`
   Clients report that as "no reply ... (waited up to 5 s): the cell is down, or access control denied
   this request" (`NoReply`, `cellctl` exit status 3). Error replies (below) come from the cell itself.
   A query on a key that no queryable serves (wrong cell id) also gets no reply.
-- The service itself needs, on a router with access control: `declare_queryable` on `{k}/jobs/**`
-  and `{k}/status`, `put` on `{k}/jobs/*/events`, `liveliness_token` on `{k}/alive`, and `reply`
-  (egress) on those keys. Rules per key expression (e.g. a viewer that may only query `cell/*/status`
-  and `cell/*/jobs`) work: queries are checked against their own key.
+- The service itself needs, on a router with access control (flows as the router sees them): ingress
+  `declare_queryable` on `{k}/jobs/**` and `{k}/status`, `put` on `{k}/jobs/*/events`, `liveliness_token`
+  on `{k}/alive` and `reply` on those keys; egress `query` (and `declare_subscriber`) on `{k}/**`. Rules
+  per key expression (e.g. a viewer that may only query `cell/*/status` and `cell/*/jobs`) work: queries
+  are checked against their own key. `deploy/zenoh/router.json5` gives each cell exactly that on its own
+  keys, and nothing else.
+- **Rate limit.** The yard router drops a session's submit that follows its previous submit (to any cell)
+  within 0.2 s, and likewise for cancels: the dropped query gets no reply. Reads are not limited.
 
 ## Key expressions
 
@@ -179,7 +183,8 @@ command line: `cellctl submit|jobs|status --cell <cell_id> --connect <endpoint>`
 Any query can instead get an **error reply** (Zenoh `reply_err`) with an [ErrorReply](#errorreply) payload.
 Queries on `{k}/jobs/**` must use exact keys (no `*`/`**`): a wildcard gets `invalid_request`. Payloads over
 {MAX_PAYLOAD_BYTES} bytes get `payload_too_large` on every key (including those that ignore their payload); a
-query over {MAX_MESSAGE_BYTES} bytes is dropped by the cell's Zenoh transport and gets no reply.
+query over {MAX_MESSAGE_BYTES} bytes is dropped by the cell's Zenoh transport (and by the yard router's,
+`deploy/zenoh/router.json5`) and gets no reply.
 
 ### Submit: `{k}/jobs/submit`
 

@@ -51,6 +51,10 @@ class ServiceConfig(BaseModel):
     connect: list[Endpoint] = Field(default_factory=list, max_length=8)
     zenoh_config_file: str | None = Field(None, description="optional JSON5 Zenoh config (credentials, TLS) "
                                           "that the fields above are applied on top of; relative to this file")
+    scene_dirs: list[Annotated[str, Field(min_length=1, max_length=500, pattern=r"^[^\x00-\x1f\x7f]+$")]] = Field(
+        default_factory=lambda: ["scenes"], max_length=16,
+        description="a job may name a scene .yaml only inside these directories, symlinks resolved (relative to "
+        "this file; default: scenes/ beside it; [] = built-in scenes only)")
     queue_max: int = Field(8, ge=1, le=1000, description="jobs waiting (the running one not counted)")
     job_timeout_s: float = Field(900.0, gt=0, le=86400, description="a job running longer is cancelled and failed")
     shutdown_grace_s: float = Field(30.0, gt=0, le=600, description="on SIGTERM, wait this long for the running "

@@ -104,6 +104,8 @@ class CellService:
         self.data_dir = Path(data_dir or self.scfg.data_dir).resolve()
         self.keys = Keys(cfg.cell_id)
         self.default_max_steps = load_planners_config(self.cfg_path.parent / cfg.planners_config).max_steps
+        # resolved once: a request's scene path must resolve inside one of these (symlinks followed)
+        self.scene_dirs = [(self.cfg_path.parent / d).resolve() for d in self.scfg.scene_dirs]
         self.listen = self.scfg.listen if listen is None else listen
         self.connect = self.scfg.connect if connect is None else connect
         self.store = JobStore(self.data_dir / "jobs.sqlite")
@@ -351,18 +353,31 @@ class CellService:
             raise ApiError("not_found", f"no job {job_id!r} on cell {self.cfg.cell_id}")
         raise ApiError("not_cancellable", f"job {job_id} already ended: {state}")
 
-    def _check_scene(self, scene: str) -> None:
+    def _check_scene(self, scene: str) -> str:
+        """The scene to load: a built-in name, or the resolved path of a .yaml inside service.scene_dirs.
+        A client may not make the cell read arbitrary files, nor learn which exist outside those directories:
+        every path outside gets the same answer, whether or not it exists."""
         from sim.scenes import SCENE_NAMES
 
         if scene in SCENE_NAMES:
-            return
-        if scene.lower().endswith((".yaml", ".yml")):
-            if Path(scene).is_file():
-                return
-            raise ApiError("invalid_request", f"scene: no file {scene!r} on the cell controller",
-                           [_detail("scene", "no such scene file")])
-        raise ApiError("invalid_request", f"scene: unknown scene {scene!r}; built-in: {', '.join(SCENE_NAMES)}",
-                       [_detail("scene", "unknown scene")])
+            return scene
+        if not scene.endswith((".yaml", ".yml")):
+            raise ApiError("invalid_request", f"scene: unknown scene {scene!r}; built-in: {', '.join(SCENE_NAMES)}",
+                           [_detail("scene", "unknown scene")])
+        allowed = ", ".join(str(d) for d in self.scene_dirs) or "none (service.scene_dirs is empty)"
+        try:  # relative to the service's working directory, as the job would open it; symlinks followed
+            path = Path(scene).resolve()
+            inside = any(path.is_relative_to(d) for d in self.scene_dirs)
+        except (OSError, RuntimeError, ValueError):  # a symlink loop, an unreadable component
+            inside = False
+        if not inside or not path.name.endswith((".yaml", ".yml")):
+            raise ApiError("invalid_request", f"scene: {scene!r} is not a .yaml inside the cell's scene "
+                           f"directories (service.scene_dirs: {allowed})"[:2000],
+                           [_detail("scene", "not inside the allowed scene directories")])
+        if not path.is_file():
+            raise ApiError("invalid_request", f"scene: no scene file {scene!r} in the cell's scene directories "
+                           f"({allowed})"[:2000], [_detail("scene", "no such scene file")])
+        return str(path)
 
     # --- devices ----------------------------------------------------------------------------------
     def _start_devices(self) -> None:
@@ -516,12 +531,13 @@ class CellService:
         timer.start()
         result, error = None, None
         try:
+            scene = self._check_scene(req.scene)  # again: the file may have changed since the submit
             if not ctl.cancel.is_set() and self.scfg.job_profile == "initial_view":
-                result = run_initial_view(self.cfg, self.cfg_path, req.scene, req.planner, seed=req.seed,
+                result = run_initial_view(self.cfg, self.cfg_path, scene, req.planner, seed=req.seed,
                                           noise=req.noise, run_dir=job_dir, cancel=ctl.cancel, on_step=on_step)
                 error = result.error
             elif not ctl.cancel.is_set():
-                result, _ = run_scan_in_twin(self.cfg, self.cfg_path, req.scene, req.planner, seed=req.seed,
+                result, _ = run_scan_in_twin(self.cfg, self.cfg_path, scene, req.planner, seed=req.seed,
                                              noise=req.noise, max_steps=req.max_steps, progress=False, cut=True,
                                              dry_run_cut=req.dry_run_cut, run_dir=job_dir, cancel=ctl.cancel,
                                              on_step=on_step, on_phase=on_phase, arm_host=self.arm_host)

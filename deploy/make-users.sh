@@ -1,7 +1,8 @@
 #!/bin/sh
 # Make the router's credential file with fresh random passwords, and one file per user holding its
 # password (for the services' and tablets' configs). Nothing here belongs in git.
-#   deploy/make-users.sh /etc/scrapcell operator viewer cell-1 cell-2
+#   deploy/make-users.sh /etc/scrapcell operator viewer cell-real-1 cell-real-2
+# (a cell logs in as "cell-<cell_id>"; deploy/zenoh/router.json5 lets each one serve only cell/<cell_id>/**)
 set -eu
 dir=${1:?usage: make-users.sh DIR USER...}
 shift
