@@ -10,7 +10,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from configs.loading import load_yaml_model
-from configs.poses import pose_from_xyz_rpy_deg
+from configs.poses import HandEyeBase, Vec3
 from sim.faults import FaultsConfig
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
@@ -58,30 +58,14 @@ class D435Config(BaseModel):
         return self
 
 
-Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
 
-class HandEyeConfig(BaseModel):
-    """T_flange_cam: the camera optical frame in the flange (``panda_hand``) frame. ``rpy_deg`` are
-    fixed-axis roll, pitch, yaw (URDF convention, R = Rz(yaw) Ry(pitch) Rx(roll)). The default puts
-    the optical z axis along the panda_hand z axis, 5 cm off along hand x and 4 cm forward."""
-
-    model_config = _STRICT
+class HandEyeConfig(HandEyeBase):
+    """The twin's T_flange_cam. The default puts the optical z axis along the panda_hand z axis, 7 cm
+    off along hand x and 5 cm forward."""
 
     xyz: Vec3 = Field(default_factory=lambda: [0.07, 0.0, 0.05])
     rpy_deg: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
-
-    @model_validator(mode="after")
-    def _bounded(self) -> "HandEyeConfig":
-        if any(abs(v) > 0.5 for v in self.xyz):
-            raise ValueError(f"hand-eye translation {self.xyz} exceeds 0.5 m per axis")
-        if any(abs(v) > 360.0 for v in self.rpy_deg):
-            raise ValueError(f"hand-eye rpy_deg {self.rpy_deg} outside [-360, 360]")
-        return self
-
-    def T_flange_cam(self) -> np.ndarray:
-        """4x4 float64 T_flange_cam."""
-        return pose_from_xyz_rpy_deg(self.xyz, self.rpy_deg)
 
     @classmethod
     def from_file(cls, path, error: type[Exception] = ValueError) -> "HandEyeConfig":

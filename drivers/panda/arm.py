@@ -66,11 +66,10 @@ class ArmStatus:
     message: str
 
 
-def _probe_port(host: str, port: int, timeout: float) -> str | None:
-    """None if something accepts TCP on host:port; otherwise why not ("timeout", "refused", text)."""
+def _connect(host: str, port: int, timeout: float) -> socket.socket | str:
+    """A TCP connection, or why there is none ("timeout", "refused", text)."""
     try:
-        with socket.create_connection((host, port), timeout=timeout):
-            return None
+        return socket.create_connection((host, port), timeout=timeout)
     except (socket.timeout, TimeoutError):
         return "timeout"
     except ConnectionRefusedError:
@@ -79,6 +78,15 @@ def _probe_port(host: str, port: int, timeout: float) -> str | None:
         return f"cannot resolve: {e.strerror or e}"
     except OSError as e:
         return e.strerror or str(e)
+
+
+def _probe_port(host: str, port: int, timeout: float) -> str | None:
+    """None if something accepts TCP on host:port; otherwise why not ("timeout", "refused", text)."""
+    s = _connect(host, port, timeout)
+    if isinstance(s, str):
+        return s
+    s.close()
+    return None
 
 
 def _server_version(host: str, timeout: float) -> int | str:
@@ -87,16 +95,9 @@ def _server_version(host: str, timeout: float) -> int | str:
     version and UDP port, little endian: the same from server version 2 to 10) with version 0, which
     a Franka controller answers with "incompatible" and its own version without opening a session;
     franky-sim answers every request."""
-    try:
-        s = socket.create_connection((host, FCI_PORT), timeout=timeout)
-    except (socket.timeout, TimeoutError):
-        return "timeout"
-    except ConnectionRefusedError:
-        return "refused"
-    except socket.gaierror as e:
-        return f"cannot resolve: {e.strerror or e}"
-    except OSError as e:
-        return e.strerror or str(e)
+    s = _connect(host, FCI_PORT, timeout)
+    if isinstance(s, str):
+        return s
     with s, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
         udp.bind(("", 0))  # a real port in case the server starts streaming state
         data = b""

@@ -18,11 +18,10 @@ import pybullet_data
 from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
 from configs.loading import load_yaml_model
-from configs.poses import pose_from_xyz_rpy_deg
+from configs.poses import HandEyeBase, Vec3
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
 
-Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Vec6 = Annotated[list[float], Field(min_length=6, max_length=6)]
 Vec7 = Annotated[list[float], Field(min_length=7, max_length=7)]
 
@@ -140,25 +139,8 @@ class WorkspaceConfig(BaseModel):
     check_step_rad: float = Field(0.02, gt=0.0, le=0.2)
 
 
-class HandEye(BaseModel):
-    """T_flange_cam of the real camera: the optical frame in ``panda_hand``; ``rpy_deg`` fixed-axis
-    roll, pitch, yaw (the same convention as the twin's ``hand_eye``)."""
-
-    model_config = _STRICT
-
-    xyz: Vec3
-    rpy_deg: Vec3
-
-    @model_validator(mode="after")
-    def _bounded(self) -> "HandEye":
-        if any(abs(v) > 0.5 for v in self.xyz):
-            raise ValueError(f"hand-eye translation {self.xyz} exceeds 0.5 m per axis")
-        if any(abs(v) > 360.0 for v in self.rpy_deg):
-            raise ValueError(f"hand-eye rpy_deg {self.rpy_deg} outside [-360, 360]")
-        return self
-
-    def T_flange_cam(self) -> np.ndarray:
-        return pose_from_xyz_rpy_deg(self.xyz, self.rpy_deg)
+class HandEye(HandEyeBase):
+    """T_flange_cam of the real camera (no default: it comes from calibration)."""
 
 
 class FrankaConfig(BaseModel):
