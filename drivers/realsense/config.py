@@ -1,5 +1,5 @@
 """Validated configuration of the real Intel RealSense D435, opened through Open3D's RealSense support
-(``open3d.t.io.RealSenseSensor`` live, ``RSBagReader`` for a recorded ``.bag``; no pyrealsense2).
+(``open3d.t.io.RealSenseSensor`` live, ``bag.RealSenseBag`` for a recorded ``.bag``; no pyrealsense2).
 
 Everything the device would refuse at start (an unknown resolution, frame rate or format) is refused
 here first, naming the field, so a wrong YAML fails at load time and not in front of the robot."""

@@ -1,4 +1,4 @@
-"""Open3D RealSense output -> our ``RGBDFrame``: the part the live camera and the bag player share."""
+"""Open3D RealSense output -> our ``RGBDFrame``, and the depth conversion the live camera and the bag player share."""
 
 from __future__ import annotations
 
@@ -54,10 +54,15 @@ def to_rgbd_frame(image, intrinsics: Intrinsics, depth_scale: float, color_forma
         raise DeviceError(f"depth must be uint16 (Z16), got {raw.dtype}")
     if color_format == "BGR8":
         color = color[..., ::-1]
+    return RGBDFrame(color=np.ascontiguousarray(color, dtype=np.uint8), depth=depth_to_metres(raw, depth_scale),
+                     intrinsics=intrinsics, timestamp=time.monotonic())
+
+
+def depth_to_metres(raw: np.ndarray, depth_scale: float) -> np.ndarray:
+    """uint16 depth units -> float32 metres (raw / depth_scale, Open3D's convention), 0 (no return) -> NaN."""
     depth = raw.astype(np.float32) / np.float32(depth_scale)
     depth[raw == 0] = np.nan
-    return RGBDFrame(color=np.ascontiguousarray(color, dtype=np.uint8), depth=depth, intrinsics=intrinsics,
-                     timestamp=time.monotonic())
+    return depth
 
 
 def call_with_timeout(fn: Callable[[], T], timeout_s: float, what: str) -> T:

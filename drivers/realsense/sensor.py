@@ -179,5 +179,5 @@ def open_camera(config: RealSenseConfig, **live_kwargs):
     if config.bag is not None:
         from drivers.realsense.bag import RealSenseBag
 
-        return RealSenseBag(config.bag, frame_timeout_s=config.frame_timeout_s)
+        return RealSenseBag(config.bag)
     return RealSenseCamera(config, **live_kwargs)
