@@ -169,7 +169,35 @@ class DryRunSummary(ApiModel):
     path_error_median_mm: float | None = None
 
 
+class CutGap(ApiModel):
+    """A stretch of the drawing the torch will not cut, and why."""
+
+    branch: int = Field(ge=0, description="which branch of the drawing")
+    length_m: float = Field(ge=0, description="0 for a reconfiguration: the torch lifts and lands again there")
+    reason: str = Field(max_length=64, description="out of reach, joint limits, collision, singular, reconfigure, "
+                                                   "too short")
+    detail: str = Field("", max_length=500)
+    start: list[float] = Field(min_length=3, max_length=3, description="last cut point before it, robot base, m")
+    end: list[float] = Field(min_length=3, max_length=3, description="first cut point after it, robot base, m")
+
+
+class CutAccuracy(ApiModel):
+    """The cuts against the painted line's true centerline (twin only)."""
+
+    strokes: int = Field(ge=0, description="strokes of the true drawing")
+    cuts: int = Field(ge=0)
+    line_on_metal_m: float | None = Field(None, ge=0)
+    cut_coverage: float = Field(ge=0, le=1, description="share of the true line within 5 mm of a cut")
+    path_to_line_mean_mm: float | None = Field(None, ge=0)
+    path_to_line_max_mm: float | None = Field(None, ge=0)
+    line_to_path_mean_mm: float | None = Field(None, ge=0)
+    line_to_path_max_mm: float | None = Field(None, ge=0, description="includes the uncut gaps")
+
+
 class CutPathSummary(ApiModel):
+    """What will be cut. ``branches`` are the cuts in cutting order (runs of the drawing the arm can
+    follow in one go), ``feasible_branches`` those with an approach and a retract too."""
+
     branches: int = Field(ge=0)
     feasible_branches: int = Field(ge=0)
     poses: int = Field(ge=0)
@@ -179,6 +207,12 @@ class CutPathSummary(ApiModel):
     infeasible: dict[str, int] = Field(default_factory=dict, description="pose count per reason")
     error: str | None = Field(None, max_length=2000)
     dry_run: DryRunSummary | None = None
+    cut_fraction: float = Field(0.0, ge=0, le=1, description="share of the drawing's length the cuts cover")
+    drawing_length_m: float = Field(0.0, ge=0)
+    gaps: list[CutGap] = Field(default_factory=list, max_length=200, description="what is left uncut, and why")
+    warnings: list[str] = Field(default_factory=list, max_length=50, description="what the operator should know")
+    clearing_views: int = Field(0, ge=0, description="views taken after the scan to see the torch's way")
+    accuracy: CutAccuracy | None = None
 
 
 class ResultSummary(ApiModel):

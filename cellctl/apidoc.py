@@ -13,7 +13,8 @@ from pydantic import BaseModel
 
 from cellctl import api
 from cellctl.api import (ERROR_CODES, MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, SCHEMA_VERSION, Artifacts, CancelReply,
-                         CancelRequest, CellStatus, CutPathSummary, DryRunSummary, ErrorDetail, ErrorReply, JobBrief,
+                         CancelRequest, CellStatus, CutAccuracy, CutGap, CutPathSummary, DryRunSummary, ErrorDetail,
+                         ErrorReply, JobBrief,
                          JobEvent, JobList, JobRecord, ListJobsRequest, Progress, ResultSummary, ScanDrawingRequest,
                          SubmitReply, Transition)
 
@@ -28,8 +29,14 @@ def examples() -> dict[str, BaseModel]:
     result = ResultSummary(scene="smooth_cylinder", planner="gnbv", steps=5, terminated_by="quality",
                            coverage_percent=97.9, coverage_hit=238, coverage_total=243, planning_s=5.61, step_s=1.4,
                            capture_s=1.3, motion_planning_s=0.42, motion_s=9.8, displacement_m=0.61,
-                           cut=CutPathSummary(branches=1, feasible_branches=1, poses=126, feasible_poses=126,
-                                              length_m=0.623, planning_s=0.64))
+                           cut=CutPathSummary(branches=1, feasible_branches=1, poses=129, feasible_poses=129,
+                                              length_m=0.637, planning_s=2.1, cut_fraction=0.941,
+                                              drawing_length_m=0.677,
+                                              gaps=[CutGap(branch=0, length_m=0.040, reason="out of reach",
+                                                           detail="the torch pose is beyond the arm's reach at "
+                                                                  "every tilt (8 out of reach of 8 poses)",
+                                                           start=[0.712, 0.221, 0.141], end=[0.690, 0.197, 0.152])],
+                                              warnings=[]))
     return {
         "request": req,
         "submit_reply": SubmitReply(job_id=J, queue_position=1),
@@ -130,7 +137,8 @@ def field_table(model: type[BaseModel]) -> str:
 
 
 MODELS: list[type[BaseModel]] = [ScanDrawingRequest, SubmitReply, ListJobsRequest, JobList, JobBrief, JobRecord,
-                                 Transition, Progress, ResultSummary, CutPathSummary, DryRunSummary, Artifacts,
+                                 Transition, Progress, ResultSummary, CutPathSummary, CutGap, CutAccuracy,
+                                 DryRunSummary, Artifacts,
                                  CancelRequest, CancelReply, CellStatus, JobEvent, ErrorReply, ErrorDetail]
 
 
@@ -266,8 +274,11 @@ refused submit or a finished job; `not_ready_reason` then says what is missing:
 `queued` → `running` → (`cancelling` →) `done` | `failed` | `cancelled` | `interrupted`; a queued job can
 go straight to `cancelled` or `interrupted`.
 
-- `done`: the scan ended by itself (quality, frontier, max_steps, ...); `result.cut` has the cutting path
-  summary (with its own `error` when no feasible path was found).
+- `done`: the scan ended by itself (quality, frontier, max_steps, ...); `result.cut` says what will be cut:
+  `cut_fraction` of the drawing's length in `feasible_branches` cuts, the `gaps` left uncut with their
+  reasons, `warnings` in words (its own `error` when no cut could be planned). When not all of the line
+  will be cut, the `done` transition's `note` and the final event's `message` start with `warning:`
+  (e.g. `warning: 94.1 % of the drawing will be cut in 1 cuts; uncut: 40 mm out of reach`).
 - `failed`: the scan failed (`error`), or ran longer than `service.job_timeout_s` (`error` starts with
   `timeout:`); the partial result is kept.
 - `cancelled`: by a cancel request; the partial result is kept.

@@ -105,6 +105,7 @@ def run_record(scene: str, category: int | None, planner: str, seed: int, result
         "terminated_by": result.terminated_by,
         "motion_contacts": int(result.motion_contacts),  # the twin's own check of every move
         "cut_feasible_poses": None if not result.cut else [result.cut["feasible_poses"], result.cut["poses"]],
+        "cut": cut_record(result.cut),
         # after each captured view (the initial one first): drawing coverage and planning time so far,
         # so planners can be compared at equal coverage, not only at their own stop
         "coverage_by_view": [r.coverage_percent for r in result.records],
@@ -115,6 +116,23 @@ def run_record(scene: str, category: int | None, planner: str, seed: int, result
         "error": result.error,
         "run_dir": run_dir,
     }
+
+
+def cut_record(cut: dict | None) -> dict | None:
+    """What the bench keeps of a scan's cut: how much of the drawing is cut, against the true line,
+    the gaps by reason, planning time and (with a dry run) the twin's own check of the motion."""
+    if not cut:
+        return None
+    gaps: dict[str, float] = {}
+    for g in cut.get("gaps", []):
+        if g["length_m"] > 0:
+            gaps[g["reason"]] = round(gaps.get(g["reason"], 0.0) + g["length_m"], 4)
+    dry = cut.get("dry_run") or {}
+    return {"fraction": cut.get("cut_fraction"), "cuts": cut.get("feasible_branches"),
+            "planning_s": round(float(cut.get("planning_s", 0.0)), 3), "uncut_m_by_reason": gaps,
+            "accuracy": cut.get("accuracy"), "error": cut.get("error"), "clearing_views": cut.get("clearing_views", 0),
+            "dry_run_contacts": None if not dry else len(dry.get("contacts", [])),
+            "dry_run_tip_error_max_mm": dry.get("tip_error_max_mm")}
 
 
 class Progress:
@@ -182,7 +200,8 @@ def _subdirs(p: Path) -> set[Path]:
 
 
 def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list[str], seeds: int, out: Path, *,
-              memory: bool = True, quick: bool = False, stream: TextIO | None = None) -> dict:
+              memory: bool = True, quick: bool = False, stream: TextIO | None = None,
+              dry_run_cut: bool = False) -> dict:
     """Run the grid, write OUT/bench.json (after every run) and OUT/runs/seed<k>/<run folders>;
     returns the bench document. The report is written by the caller (cellctl.bench_report)."""
     from cellctl.scan_run import run_scan_in_twin
@@ -205,7 +224,7 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
         "created": datetime.now().astimezone().isoformat(timespec="seconds"),
         "complete": False,
         "bench": {"scenes": scenes, "planners": planners, "seeds": list(range(seeds)), "quick": quick,
-                  "memory": memory, "noise": True},
+                  "memory": memory, "noise": True, "dry_run_cut": dry_run_cut},
         "config": {"cell_config_path": str(cfg_path), "cell": cfg.model_dump(mode="json"),
                    "planners": pcfg.model_dump(mode="json")},
         "machine": machine_info(),
@@ -227,7 +246,8 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
                                  ScanResult(scene, planner, error=import_errors[planner], terminated_by="error"),
                                  None, 0.0, None)
             else:
-                rec = _one_run(cfg, cfg_path, scene, categories[scene], planner, seed, out, memory, run_scan_in_twin)
+                rec = _one_run(cfg, cfg_path, scene, categories[scene], planner, seed, out, memory, run_scan_in_twin,
+                               dry_run_cut)
             doc["runs"].append(rec)
             doc["process"] = {"max_rss_mb": max_rss_mb(), "wall_s": round(time.perf_counter() - t_start, 1)}
             write_json(json_path, doc)
@@ -241,7 +261,8 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
     return doc
 
 
-def _one_run(cfg, cfg_path, scene, category, planner, seed, out: Path, memory: bool, run_scan_in_twin) -> dict:
+def _one_run(cfg, cfg_path, scene, category, planner, seed, out: Path, memory: bool, run_scan_in_twin,
+             dry_run_cut: bool = False) -> dict:
     runs_root = out / "runs" / f"seed{seed}"
     before = _subdirs(runs_root)
     base = 0
@@ -252,7 +273,7 @@ def _one_run(cfg, cfg_path, scene, category, planner, seed, out: Path, memory: b
     run_dir: Path | None
     try:
         result, run_dir = run_scan_in_twin(cfg, cfg_path, scene, planner, seed=seed, noise=True,
-                                           out=str(runs_root), progress=False)
+                                           out=str(runs_root), progress=False, dry_run_cut=dry_run_cut)
     except Exception as e:  # noqa: BLE001 - the bench records it and goes on
         import traceback
 
@@ -330,7 +351,8 @@ def cli_bench(args) -> int:
     print(f"bench: {len(scenes)} scenes x {len(planners)} planners x {seeds} seeds = "
           f"{len(scenes) * len(planners) * seeds} runs -> {out}", file=sys.stderr)
     try:
-        doc = run_bench(cfg, cfg_path, scenes, planners, seeds, out, memory=not args.no_memory, quick=args.quick)
+        doc = run_bench(cfg, cfg_path, scenes, planners, seeds, out, memory=not args.no_memory, quick=args.quick,
+                        dry_run_cut=getattr(args, "dry_run_cut", False))
     except KeyboardInterrupt:
         if (out / "bench.json").is_file():
             bench_report.write_report(bench_report.load_bench(out / "bench.json"), out)

@@ -300,6 +300,28 @@ def render_markdown(doc: dict) -> str:
             L.append(f"| {r['scene']} | {r['planner']} | {r['seed']} | {_first_line(r['error'], 200)} |")
         L.append("")
 
+    cut_runs = [r for r in doc["runs"] if r.get("cut")]
+    if cut_runs:
+        L += ["## The cut", "",
+              "What each scan hands to the torch (planners/cutpath: ladder graph within the torch's tilt tolerances, "
+              "split into runs where the arm cannot go on), measured against the scene's true centerline: cut coverage "
+              "= share of the true line within 5 mm of a cuttable cut; path to line = distance of the cuts from the "
+              "line (gaps excluded); line to path max includes the gaps.", "",
+              "| scene | planner | seed | cut (% of drawing) | cut coverage (%) | path to line mean / max (mm) | "
+              "line to path max (mm) | cuts / strokes | uncut by reason (mm) | planning (s) | dry-run contacts | "
+              "tip error max (mm) |",
+              "|---|---|--:|--:|--:|--:|--:|--:|---|--:|--:|--:|"]
+        for r in cut_runs:
+            c, a = r["cut"], r["cut"].get("accuracy") or {}
+            uncut = ", ".join(f"{k} {1000 * v:.0f}" for k, v in sorted(c["uncut_m_by_reason"].items())) or "-"
+            cov = a.get("cut_coverage")
+            L.append(f"| {r['scene']} | {r['planner']} | {r['seed']} | {_num(100 * (c['fraction'] or 0.0), 1)} | "
+                     f"{_num(None if cov is None else 100 * cov, 1)} | {_num(a.get('path_to_line_mean_mm'), 2)} / "
+                     f"{_num(a.get('path_to_line_max_mm'), 2)} | {_num(a.get('line_to_path_max_mm'), 1)} | "
+                     f"{c['cuts']} / {a.get('strokes', NA)} | {uncut} | {_num(c['planning_s'], 2)} | "
+                     f"{_count(c.get('dry_run_contacts'))} | {_num(c.get('dry_run_tip_error_max_mm'), 3)} |")
+        L.append("")
+
     L += ["## Every run", "",
           "views = captured views incl. the initial one; peak mem = tracemalloc peak during the run above what was "
           "traced at its start (Python and numpy allocations only).", "",

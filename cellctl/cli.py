@@ -184,10 +184,25 @@ def _print_summary(r, run_dir: Path) -> None:
     ]
     if r.cut:
         c = r.cut if isinstance(r.cut, dict) else r.cut.model_dump()  # ScanResult or api.ResultSummary
-        rows.append(("cut path", f"{c['feasible_branches']}/{c['branches']} branches feasible, "
-                                 f"{c['feasible_poses']}/{c['poses']} poses, {c['length_m']:.3f} m"
-                                 + (f"; infeasible: {c['infeasible']}" if c["infeasible"] else "")
+        frac, drawing = c.get("cut_fraction"), c.get("drawing_length_m")
+        uncut: dict[str, float] = {}
+        for g in c.get("gaps") or []:
+            if g["length_m"] > 0:
+                uncut[g["reason"]] = uncut.get(g["reason"], 0.0) + g["length_m"]
+        what = (f"{100 * frac:.1f} % of the {drawing:.3f} m drawing, " if frac is not None and drawing else "")
+        rows.append(("cut path", what + f"{c['feasible_branches']} cuts"
+                                 + (f" ({c['branches'] - c['feasible_branches']} not runnable)"
+                                    if c["branches"] > c["feasible_branches"] else "")
+                                 + ("; uncut: " + ", ".join(f"{1000 * v:.0f} mm {k}" for k, v in sorted(uncut.items()))
+                                    if uncut else "")
                                  + (f"; {c['error']}" if c["error"] else "")))
+        for msg in c.get("issues") or []:
+            rows.append(("warning", msg))
+        if c.get("accuracy"):
+            a = c["accuracy"]
+            rows.append(("cut vs true line", f"{100 * a['cut_coverage']:.1f} % of the line within 5 mm of a cut; "
+                                             f"path to line mean {a['path_to_line_mean_mm']} mm, max "
+                                             f"{a['path_to_line_max_mm']} mm; {a['cuts']} cuts for {a['strokes']} strokes"))
         if c.get("dry_run"):
             d = c["dry_run"]
             rows.append(("dry-run cut", f"{d['motions']} motions, tip error max {d['tip_error_max_mm']} mm "
@@ -244,6 +259,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="smooth_cylinder,round_tank x gnbv,enpv x 1 seed (explicit options still win)")
     b.add_argument("--config", default=None, help="cell config YAML (default: configs/cell.sim.yaml)")
     b.add_argument("--no-memory", action="store_true", help="do not trace allocations (tracemalloc) during runs")
+    b.add_argument("--dry-run-cut", action="store_true",
+                   help="run every scan's cut in the twin (torch off): contacts and tip error in the cut table")
     b.add_argument("--service", type=int, nargs="?", const=100, default=None, metavar="N",
                    help="instead of scans: the job API's latency on loopback (N status queries, default 100)")
     b.add_argument("--load", action="store_true",

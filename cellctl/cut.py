@@ -28,8 +28,13 @@ class CutSummary:
     planning_s: float = 0.0
     infeasible: dict[str, int] = field(default_factory=dict)  # pose count per reason
     issues: list[str] = field(default_factory=list)
+    cut_fraction: float = 0.0  # share of the drawing's length that the feasible runs cut
+    drawing_length_m: float = 0.0
+    gaps: list[dict] = field(default_factory=list)  # uncut stretches: branch, start, end, length_m, reason, detail
     error: str | None = None
     dry_run: dict | None = None  # filled by dry_run_cut
+    accuracy: dict | None = None  # against the true line, in the twin (planners.metrics.cut_accuracy)
+    clearing_views: int = 0  # views taken after the scan to see the space the torch needs
 
 
 def torch_checker(arm_model, ccfg: CollisionConfig, cut: CutPathConfig, grid: OccupancyGrid) -> CollisionChecker:
@@ -44,7 +49,8 @@ def torch_checker(arm_model, ccfg: CollisionConfig, cut: CutPathConfig, grid: Oc
 
 
 def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: OccupancyGrid, drawing: Cloud,
-             surface: Cloud, viewpoint: np.ndarray) -> tuple[CutPath | None, CutSummary, Kinematics]:
+             surface: Cloud, viewpoint: np.ndarray,
+             park_q: np.ndarray | None = None) -> tuple[CutPath | None, CutSummary, Kinematics]:
     """Cut path from the scan; a drawing that gives no path is reported, not raised."""
     m = arm.model
     t0 = time.perf_counter()
@@ -59,7 +65,7 @@ def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: Occupanc
 
         path = plan_cut_path(drawing, surface, kin, arm.joint_positions(), cut, viewpoint=viewpoint,
                              is_free=is_free, max_vel=m.max_velocity, max_acc=m.max_acceleration,
-                             max_jerk=m.max_jerk)
+                             max_jerk=m.max_jerk, park_q=park_q)
     except ValueError as e:
         summary.error = str(e)
         summary.planning_s = time.perf_counter() - t0
@@ -72,8 +78,25 @@ def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: Occupanc
     summary.feasible_poses = sum(f == "ok" for f in reasons)
     summary.infeasible = {r: reasons.count(r) for r in sorted(set(reasons)) if r != "ok"}
     summary.length_m = round(float(path.length_m), 4)
-    summary.issues = [f"branch {i}: {msg}" for i, b in enumerate(path.branches) for msg in b.issues]
+    summary.issues = list(path.notes) + [f"cut {i}: {msg}" for i, b in enumerate(path.branches) for msg in b.issues]
+    summary.cut_fraction = round(float(path.cut_fraction), 4)
+    summary.drawing_length_m = round(float(path.drawing_length_m or 0.0), 4)
+    summary.gaps = [g.to_json_dict() for g in path.gaps]
+    if not path.branches:
+        summary.issues.append("nothing on the drawing can be cut: " + (
+            "; ".join(sorted({f"{g['reason']}: {g['detail']}" for g in summary.gaps})) or "no drawing branch"))
     return path, summary, kin
+
+
+def clearing_targets(path: CutPath | None, most: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Where a view could open the torch's way: the longest stretches left uncut for a collision
+    (the scan may not have seen the space in front of them, which then counts as solid), as
+    (middle point, outward normal), longest first."""
+    if path is None or most <= 0:
+        return []
+    gaps = sorted((g for g in path.gaps if g.reason == "collision" and g.length_m > 0 and g.normal is not None),
+                  key=lambda g: -g.length_m)
+    return [(g.points[len(g.points) // 2].copy(), g.normal.copy()) for g in gaps[:most]]
 
 
 def write_trajectory(path: CutPath, file) -> None:

@@ -108,24 +108,33 @@ class ScanRecorder:
             rec.log("world/target", rr.Points3D([target], colors=[255, 255, 0], radii=0.012))
 
     def log_cut(self, step: int, path) -> None:
-        """The cutting path: each branch as a line (green where every pose is feasible, red where one
-        is not), the torch axis at every 5th pose, and the reasons as labels of the bad poses."""
+        """The cutting path: each cut in order (green if it can run, orange if its approach or
+        retract cannot), the torch axis at every 5th pose coloured by its tilt from the normal
+        (white upright to magenta at the cone's edge), and every uncut gap in red with its reason."""
         rec = self.rec
         rec.set_time("step", sequence=step)
+        max_tilt = np.radians(max(path.config.get("lead_lag_max_deg", 20.0), path.config.get("side_tilt_max_deg", 10.0), 1.0))
         for i, b in enumerate(path.branches):
             if len(b) == 0:
                 continue
-            ok = np.array([f == "ok" for f in b.feasibility])
-            rec.log(f"world/cut/branch{i}", rr.LineStrips3D([b.points], colors=[40, 200, 60] if ok.all() else [230, 60, 40],
-                                                             radii=0.002, labels=[f"branch {i}: {b.length_m:.3f} m"]))
+            colour = [40, 200, 60] if b.feasible else [240, 150, 30]
+            tilt = b.tilt_rad if b.tilt_rad is not None else np.zeros(len(b))
+            label = (f"cut {i}: {b.length_m:.3f} m, tilt up to {np.degrees(tilt.max()):.0f} deg"
+                     + ("" if b.feasible else f" ({'; '.join(b.issues)})"))
+            rec.log(f"world/cut/cut{i}", rr.LineStrips3D([b.points], colors=colour, radii=0.002, labels=[label]))
             k = np.arange(0, len(b), 5)
-            rec.log(f"world/cut/branch{i}/torch", rr.Arrows3D(origins=b.poses[k, :3, 3] - 0.03 * b.poses[k, :3, 2],
-                                                               vectors=0.03 * b.poses[k, :3, 2],
-                                                               colors=np.where(ok[k, None], [40, 200, 60], [230, 60, 40])))
-            if (~ok).any():
-                bad = np.flatnonzero(~ok)
-                rec.log(f"world/cut/branch{i}/infeasible", rr.Points3D(b.points[bad], colors=[230, 60, 40], radii=0.003,
-                                                                        labels=[b.feasibility[j] for j in bad]))
+            f = np.clip(tilt[k] / max_tilt, 0.0, 1.0)[:, None]
+            rgb = ((1 - f) * np.array([235, 235, 235]) + f * np.array([220, 40, 220])).astype(np.uint8)
+            rec.log(f"world/cut/cut{i}/torch", rr.Arrows3D(origins=b.poses[k, :3, 3] - 0.03 * b.poses[k, :3, 2],
+                                                            vectors=0.03 * b.poses[k, :3, 2], colors=rgb))
+        for j, g in enumerate(path.gaps):
+            if g.length_m <= 0:
+                rec.log(f"world/cut/gap{j}", rr.Points3D([g.start], colors=[240, 150, 30], radii=0.004,
+                                                         labels=[f"{g.reason}: {g.detail}"]))
+                continue
+            line = g.points if g.points is not None and len(g.points) > 1 else np.stack([g.start, g.end])
+            rec.log(f"world/cut/gap{j}", rr.LineStrips3D([line], colors=[230, 40, 40], radii=0.003,
+                                                         labels=[f"uncut {1000 * g.length_m:.0f} mm: {g.reason}"]))
 
     def close(self) -> None:
         """Flush and finish the file, then free the stream: Rerun keeps a dropped stream (and the

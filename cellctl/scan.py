@@ -14,7 +14,7 @@ import threading
 import time
 import traceback
 from dataclasses import asdict, dataclass, field
-from typing import Callable
+from typing import Callable, TypeVar
 
 import numpy as np
 
@@ -30,6 +30,9 @@ from planners.motion.collision import CollisionChecker, RobotCollisionModel
 from planners.motion.ik import Unreachable
 from planners.motion.kinematics import Kinematics
 from planners.motion.view_motion import ViewMotionPlanner
+from planners.views import look_at_rotations, poses_from
+
+Out = TypeVar("Out")
 
 # name -> "module:class"; imported on demand so one planner's dependencies never load another's
 PLANNERS = {
@@ -182,6 +185,64 @@ class ScanJob:
         self.last_reach_error_m = float(np.linalg.norm(T[:3, 3] - poses[mv.index][:3, 3]))
         self.last_reach_error_deg = float(np.degrees(np.arccos(np.clip(T[:3, 2] @ poses[mv.index][:3, 2], -1.0, 1.0))))
         return mv.index, plan_s, float(path.duration), float(err)
+
+    def look_along(self, targets: list[tuple[np.ndarray, np.ndarray]], res: "ScanResult") -> int:
+        """Views for the cut, after the scan: for each (point, outward normal) the camera looks at the
+        point from where the torch would come, so the space the torch needs is seen, not assumed solid
+        (the collision model counts unseen space near the object as metal). Returns the views taken;
+        an unreachable one is skipped."""
+        taken = 0
+        for point, normal in targets:  # one or two views
+            n = normal / np.linalg.norm(normal)
+            a = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
+            a /= np.linalg.norm(a)
+            b = np.cross(n, a)
+            dirs = [n] + [np.cos(t) * n + np.sin(t) * (np.cos(f) * a + np.sin(f) * b)
+                          for t in np.radians([15.0, 30.0]) for f in np.radians(np.arange(0, 360, 60))]
+            eyes = np.array([point + d * u for d in (0.35, 0.45) for u in dirs])
+            poses = poses_from(eyes, look_at_rotations(eyes, point))
+            try:
+                _, plan_s, motion_s, _ = self._move(poses)
+            except Unreachable:
+                continue
+            k = len(res.records) + taken
+            frame = self._capture(k)
+            self._process(frame, self.arm.camera_pose(), self.arm.joint_positions())
+            res.motion_planning_s += plan_s
+            res.motion_s += motion_s
+            res.motion_contacts += len(self.last_contacts)
+            taken += 1
+        return taken
+
+    def for_the_cut(self, res: "ScanResult", what: str, fn: Callable[[], Out]) -> Out | None:
+        """A move or a view after the scan, for the cut: optional, so a fault there (a reflex, a lost
+        camera, no clear motion) is an incident, the arm is stopped (and recovered if it must be), and
+        the cut is planned from what was seen."""
+        try:
+            return fn()
+        except (DeviceError, TrajectoryError, Unreachable, ScanError) as e:
+            self._incident(len(res.records), "cut-move", f"{what} skipped: {type(e).__name__}: {e}")
+            _, notes = stop_and_recover(self.arm)
+            for kind, detail in notes:
+                self._incident(len(res.records), kind, detail)
+            return None
+
+    def go_park(self, res: "ScanResult") -> bool:
+        """Move to the park configuration's camera pose (clear above the cell): the cut starts from
+        a known clear configuration, not from wherever the last view left the arm and its torch."""
+        park = self.motion.park_q
+        if park is None:
+            return False
+        if np.max(np.abs(self.arm.joint_positions() - park)) < 1e-3:
+            return True
+        try:
+            _, plan_s, motion_s, _ = self._move(self.kin.fk(park)[None])
+        except Unreachable:
+            return False
+        res.motion_planning_s += plan_s
+        res.motion_s += motion_s
+        res.motion_contacts += len(self.last_contacts)
+        return True
 
     def move_to_initial(self, candidates: np.ndarray) -> tuple[int, float, float]:
         if len(candidates) == 0:

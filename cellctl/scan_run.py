@@ -14,35 +14,62 @@ import numpy as np
 
 from cellctl.artifacts import new_run_dir, save_png, write_json, write_ply
 from cellctl.config import CellConfig
-from cellctl.cut import dry_run_cut, plan_cut, write_trajectory
+from cellctl.cut import clearing_targets, dry_run_cut, plan_cut, write_trajectory
 from cellctl.devices import open_devices
 from cellctl.plots import coverage_figure
 from cellctl.recording import ScanRecorder
 from cellctl.scan import ScanJob, ScanResult, StepRecord
 from drivers.interfaces import Arm
 from planners.config import load_planners_config
+from planners.metrics import cut_accuracy
 from sim.scenes import load_scene
 
 
 def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, arm: Arm, run_dir: Path, recorder: ScanRecorder,
-               result: ScanResult, dry_run: bool, progress: bool) -> None:
+               result: ScanResult, dry_run: bool, progress: bool, truth: tuple | None = None) -> None:
     """planning-cut: the drawing becomes cut_path.json/.csv and cut_trajectory.npz; optionally the
-    arm runs it (torch off) and the tip's tracking is measured."""
+    arm runs it (torch off) and the tip's tracking is measured. ``truth``: (the painted line's true
+    centerline polylines, samples of the painted surface) of the twin's scene, to measure the cuts."""
     viewpoint = np.array(result.viewpoints[0]) if result.viewpoints else None
+    job.for_the_cut(result, "the move to park", lambda: job.go_park(result))  # the cut starts clear above the cell
     path, summary, kin = plan_cut(arm, cfg.motion.collision, pcfg.cutpath, job.grid, job.drawing, job.surface,
-                                  viewpoint)
+                                  viewpoint, park_q=job.motion.park_q)
+    targets = clearing_targets(path, pcfg.cutpath.max_clearing_views)
+    if targets and not job.cancelled():  # the torch's way is unseen: look, then plan again
+        views = job.for_the_cut(result, "the views of the torch's way", lambda: job.look_along(targets, result)) or 0
+        job.for_the_cut(result, "the move to park", lambda: job.go_park(result))
+        if views:
+            path, summary, kin = plan_cut(arm, cfg.motion.collision, pcfg.cutpath, job.grid, job.drawing,
+                                          job.surface, viewpoint, park_q=job.motion.park_q)
+        summary.clearing_views = views
     if path is not None:
         path.write(run_dir)
         write_trajectory(path, run_dir / "cut_trajectory.npz")
         recorder.log_cut(len(result.records), path)
         if dry_run:
             summary.dry_run = dry_run_cut(arm, kin, path)
+        if truth:
+            summary.accuracy = cut_accuracy(truth[0], [b.points for b in path.branches if b.feasible],
+                                            painted=truth[1])
     result.cut = asdict(summary)
     if progress:
-        print(f"cut path: {summary.feasible_branches}/{summary.branches} branches feasible, "
-              f"{summary.feasible_poses}/{summary.poses} poses, {summary.length_m:.3f} m, "
-              f"planned in {summary.planning_s:.2f} s" + (f" ({summary.error})" if summary.error else ""),
+        print(f"cut path: {100 * summary.cut_fraction:.1f} % of the {summary.drawing_length_m:.3f} m drawing "
+              f"will be cut, {summary.feasible_branches} cuts ({summary.branches - summary.feasible_branches} "
+              f"not runnable), planned in {summary.planning_s:.2f} s"
+              + (f" after {summary.clearing_views} more view(s) of the torch's way" if summary.clearing_views else "")
+              + (f" ({summary.error})" if summary.error else ""),
               file=sys.stderr, flush=True)
+        for g in summary.gaps:
+            if g["length_m"] > 0:
+                print(f"  uncut {1000 * g['length_m']:.0f} mm of branch {g['branch']}: {g['reason']}: {g['detail']}",
+                      file=sys.stderr, flush=True)
+        for msg in summary.issues:
+            print(f"  warning: {msg}", file=sys.stderr, flush=True)
+        if summary.accuracy:
+            a = summary.accuracy
+            print(f"  against the true line: {100 * a['cut_coverage']:.1f} % within 5 mm of a cut; path to line mean "
+                  f"{a['path_to_line_mean_mm']} mm, max {a['path_to_line_max_mm']} mm; {a['cuts']} cuts for "
+                  f"{a['strokes']} strokes", file=sys.stderr, flush=True)
 
 
 def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, seed: int | None = None,
@@ -93,7 +120,8 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
                 if cut and result.error is None and not job.cancelled() and len(job.drawing):
                     if on_phase:
                         on_phase("planning-cut")
-                    _cut_phase(job, pcfg, cfg, dev.arm, run_dir, recorder, result, dry_run_cut, progress)
+                    truth = (scene.drawing_polylines, scene.gt_points) if cfg.mode != "real" else None
+                    _cut_phase(job, pcfg, cfg, dev.arm, run_dir, recorder, result, dry_run_cut, progress, truth)
         finally:  # what the scan saw is kept, also when the cut phase or the twin failed afterwards
             if job is not None:
                 unsaved = _keep_views(job, run_dir, scene, pcfg, planner, result)

@@ -558,7 +558,7 @@ class CellService:
         elif error:
             state, note = "failed", "the scan failed"
         else:
-            state, note = "done", None
+            state, note = "done", cut_warning(summary)
         self._finish(job_id, state, note, result=summary, error=error)
 
     def _state_of(self, ctl: JobControl) -> str:
@@ -584,6 +584,26 @@ class CellService:
         log.info("job %s %s%s", job_id, state, f": {error.splitlines()[0]}" if error else "")
 
 
+def cut_warning(summary: ResultSummary | None) -> str | None:
+    """A done job whose line is not all cut says so in its final note and event, in words."""
+    cut = summary.cut if summary is not None else None
+    if cut is None:
+        return None
+    if cut.error:
+        return f"warning: no cut: {cut.error}"[:500]
+    if cut.feasible_branches == 0:
+        return ("warning: nothing on the drawing can be cut" + (f": {cut.warnings[-1]}" if cut.warnings else ""))[:500]
+    uncut = {}
+    for g in cut.gaps:
+        if g.length_m > 0:
+            uncut[g.reason] = uncut.get(g.reason, 0.0) + g.length_m
+    if cut.cut_fraction >= 0.999 and not uncut:
+        return None
+    parts = ", ".join(f"{1000 * v:.0f} mm {k}" for k, v in sorted(uncut.items()))
+    return (f"warning: {100 * cut.cut_fraction:.1f} % of the drawing will be cut in {cut.feasible_branches} cuts"
+            + (f"; uncut: {parts}" if parts else ""))[:500]
+
+
 def _detail(loc: str, msg: str):
     from cellctl.api import ErrorDetail
 
@@ -605,7 +625,11 @@ def _summary_from_dict(d: dict) -> ResultSummary:
     cut = d.get("cut")
     if cut:
         s["cut"] = {k: cut.get(k) for k in ("branches", "feasible_branches", "poses", "feasible_poses", "length_m",
-                                            "planning_s", "infeasible", "error", "dry_run")}
+                                            "planning_s", "infeasible", "error", "dry_run", "cut_fraction",
+                                            "drawing_length_m", "clearing_views", "accuracy") if cut.get(k) is not None}
+        s["cut"]["gaps"] = [{k: g[k] for k in ("branch", "length_m", "reason", "detail", "start", "end")}
+                            for g in (cut.get("gaps") or [])[:200]]
+        s["cut"]["warnings"] = [str(w)[:500] for w in (cut.get("issues") or [])[:50]]
         if cut.get("error"):
             s["cut"]["error"] = str(cut["error"])[:2000]
         dr = cut.get("dry_run")

@@ -160,7 +160,9 @@ class CutPathConfig(_Strict):
     # drawing -> branches
     voxel_m: float = Field(0.005, ge=0.001, le=0.05, description="skeleton voxel; the 2 mm surface cloud allows 5 mm")
     closing_iterations: int = Field(1, ge=0, le=5, description="close gaps of up to 2x this many voxels")
-    min_branch_m: float = Field(0.03, ge=0, le=1.0, description="spurs (and lone pieces) shorter than this are dropped")
+    min_branch_m: float = Field(0.03, ge=0, le=1.0, description="spurs shorter than this are dropped")
+    bridge_max_m: float = Field(0.08, gt=0, le=0.5, description="pieces of a broken line this close belong to one line")
+    min_piece_m: float = Field(0.008, gt=0, le=0.2, description="a piece of paint shorter than this along the line is a speck")
     smoothing_voxels: float = Field(0.5, ge=0, le=5, description="B-spline: RMS deviation allowed from the skeleton")
     spacing_m: float = Field(0.005, ge=0.0005, le=0.1, description="arc length between torch poses")
     normal_radius_m: float = Field(0.02, gt=0.002, le=0.2, description="neighbourhood of the surface normal (PCA)")
@@ -171,14 +173,21 @@ class CutPathConfig(_Strict):
     torch: TorchConfig = TorchConfig()
     # joint motion
     free_roll: bool = Field(True, description="roll about the torch axis left to IK: a round nozzle is symmetric")
+    # tolerances (oxy-fuel practice: the tip leans 5-20 deg along the travel, lead or lag; a
+    # side tilt bevels the kerf, so less of it is allowed)
+    lead_lag_max_deg: float = Field(20.0, ge=0, le=45, description="torch axis tilt along the travel, either way")
+    side_tilt_max_deg: float = Field(10.0, ge=0, le=45, description="torch axis tilt across the travel, either way")
+    tilt_steps: int = Field(2, ge=0, le=6, description="samples per side of each tilt range (0: the normal only)")
+    tilt_cost_weight: float = Field(1.0, ge=0, le=100, description="cost of tilt (rad^2) against joint motion (rad^2)")
     max_joint_jump_rad: float = Field(0.2, gt=0, le=math.pi, description="larger joint change between poses is infeasible")
     ik_margin_rad: float = Field(0.05, ge=0, le=0.5, description="kept from every joint limit")
-    ik_seeds: int = Field(8, ge=1, le=64, description="IK starts for a branch's first pose and after a failure")
+    ik_seeds: int = Field(8, ge=1, le=64, description="IK starts per torch pose (tracks of the ladder graph)")
     approach_speed_factor: float = Field(0.3, gt=0, le=1, description="of the arm's limits, for approach and retract")
     dt_s: float = Field(0.01, gt=0, le=0.1, description="sample period of the joint trajectories")
     reverse_branches: bool = Field(True, description="start each branch at the end nearer the torch")
     # collision checks of the cut (the torch must come close to the metal: its nozzle is exempt)
     cut_margin_m: float = Field(0.005, ge=0, le=0.1, description="clearance of arm and torch from the scan")
+    max_clearing_views: int = Field(2, ge=0, le=8, description="views after the scan where unseen space blocks the torch")
     nozzle_exempt_m: float = Field(0.03, ge=0, le=0.5, description="this much of the torch, from the tip, is not checked")
 
     @model_validator(mode="after")

@@ -40,3 +40,50 @@ def displacement(positions: np.ndarray) -> float:
     if len(p) < 2:
         return 0.0
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
+def _dense(polylines: list[np.ndarray], step: float) -> np.ndarray:
+    """Points every ``step`` along each polyline (ends kept), stacked (M,3)."""
+    out = []
+    for p in polylines:
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
+        if len(p) == 1:
+            out.append(p)
+            continue
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+        t = np.linspace(0.0, s[-1], max(int(np.ceil(s[-1] / step)), 1) + 1)
+        out.append(np.column_stack([np.interp(t, s, p[:, k]) for k in range(3)]))
+    return np.vstack(out) if out else np.zeros((0, 3))
+
+
+def cut_accuracy(true_polylines: list[np.ndarray], cuts: list[np.ndarray], tolerance_m: float = 0.005,
+                 step_m: float = 0.001, painted: np.ndarray | None = None, on_metal_m: float = 0.003) -> dict:
+    """The planned cuts against the painted line's true centerline (the twin knows it).
+
+    cut_coverage: share of the true centerline within ``tolerance_m`` of a cut; path_to_line: how
+    far the cuts stray from the line (mean, max; what the torch would get wrong); line_to_path: how
+    far the line is from the nearest cut (max includes uncut gaps); cuts against strokes. Both
+    curves are sampled every ``step_m``, so distances are exact to half of it. ``painted``: samples
+    of the painted surface; then only the line where it lies on metal (within ``on_metal_m`` of the
+    paint) counts: where a line crosses the air between the bars of a basket there is nothing to cut."""
+    from scipy.spatial import cKDTree
+
+    line = _dense(true_polylines, step_m)
+    if painted is not None and len(painted) and len(line):
+        line = line[cKDTree(np.asarray(painted, dtype=np.float64)).query(line)[0] <= on_metal_m]
+    if len(line) == 0:
+        raise ValueError("the true drawing has no polyline (on metal): cut accuracy is undefined")
+    out = {"strokes": len(true_polylines), "cuts": len(cuts), "line_on_metal_m": round(step_m * len(line), 4),
+           "cut_coverage": 0.0, "path_to_line_mean_mm": None,
+           "path_to_line_max_mm": None, "line_to_path_mean_mm": None, "line_to_path_max_mm": None}
+    path = _dense(cuts, step_m)
+    if len(path) == 0:
+        return out
+    d_line, _ = cKDTree(path).query(line)
+    d_path, _ = cKDTree(line).query(path)
+    out.update(cut_coverage=round(float(np.mean(d_line <= tolerance_m)), 4),
+               path_to_line_mean_mm=round(1e3 * float(d_path.mean()), 3),
+               path_to_line_max_mm=round(1e3 * float(d_path.max()), 3),
+               line_to_path_mean_mm=round(1e3 * float(d_line.mean()), 3),
+               line_to_path_max_mm=round(1e3 * float(d_line.max()), 3))
+    return out

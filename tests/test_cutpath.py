@@ -15,8 +15,7 @@ import pytest
 
 from planners.clouds import Cloud
 from planners.cutpath import (
-    REASONS,
-    Branch,
+    GAP_REASONS,
     CutPath,
     CutPathConfig,
     TorchConfig,
@@ -24,7 +23,6 @@ from planners.cutpath import (
     drawing_graph,
     plan_cut,
     smooth_resample,
-    solve_branch,
     torch_kinematics,
     torch_poses,
 )
@@ -293,42 +291,16 @@ def test_fixed_roll_follows_the_travel_direction(kin):
     np.testing.assert_allclose(T[:, :3, :3], br.poses[:, :3, :3], atol=0.002)
 
 
-def test_unreachable_path_is_flagged_per_pose(kin):
+def test_an_unreachable_line_is_one_gap_with_its_reason(kin):
     drawing, surface = line_on_plate((0.45, -0.1, PLATE_Z), (0.45, 0.1, PLATE_Z))
     far = [3.0, 0.0, 0.0]
     drawing = Cloud(drawing.xyz + np.float32(far), drawing.rgb, drawing.origin + np.float32(far))
     surface = Cloud(surface.xyz + np.float32(far), surface.rgb, surface.origin + np.float32(far))
     path = plan_cut(build_cut_path(drawing, surface, CFG), kin, PANDA_Q_READY, CFG)
-    br = path.branches[0]
-    assert br.feasibility == ["unreachable"] * len(br)
-    assert np.isnan(br.q).all() and not br.feasible and not path.feasible
-    assert br.issues and br.approach is None and br.cut is None
-
-
-def test_collisions_and_jumps_are_flagged(kin):
-    drawing, surface = line_on_plate((0.45, -0.08, PLATE_Z), (0.45, 0.08, PLATE_Z))
-    path = build_cut_path(drawing, surface, CFG)
-    br = path.branches[0]
-    calls = []
-
-    def is_free(Q):
-        calls.append(Q.shape)
-        return np.arange(len(Q)) % 2 == 0  # every other configuration in collision
-
-    solve_branch(kin, br, PANDA_Q_READY, CFG, is_free)
-    assert calls == [(len(br), 7)]  # one batched call
-    assert br.feasibility[1::2] == ["collision"] * len(br.feasibility[1::2])
-    assert br.feasibility[0::2] == ["ok"] * len(br.feasibility[0::2])
-    # the torch turns 60 degrees between two poses at one spot: the arm must jump
-    T = br.poses[:2].copy()
-    c, s = math.cos(math.radians(60)), math.sin(math.radians(60))
-    T[1, :3, :3] = T[0, :3, :3] @ np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-    T[1, :3, 3] = T[0, :3, 3]
-    pts, n = br.points[:2], -T[:, :3, 2]
-    jb = Branch(pts, n, T, np.full(2, CFG.travel_speed_mps), "E0", "E1")
-    solve_branch(kin, jb, PANDA_Q_READY, CFG)
-    assert jb.feasibility == ["ok", "jump"]
-    assert set(jb.feasibility) <= set(REASONS)
+    assert path.branches == [] and not path.feasible and path.cut_fraction == 0.0
+    assert [g.reason for g in path.gaps] == ["out of reach"]
+    assert path.gaps[0].length_m == pytest.approx(path.drawing_length_m, rel=1e-6)
+    assert path.drawing_length_m == pytest.approx(0.2, abs=0.02)
 
 
 def test_branched_scene_plans_every_branch(branched, kin):
@@ -337,14 +309,18 @@ def test_branched_scene_plans_every_branch(branched, kin):
     t1 = time.perf_counter()
     plan_cut(path, kin, PANDA_Q_READY, CFG)
     t2 = time.perf_counter()
-    assert len(path.branches) >= 5
-    ends = {e for b in path.branches for e in (b.start, b.end)}
-    assert {f"E{i}" for i in range(4)} <= ends and "J0" in ends
-    for b in path.branches:
-        assert len(b.feasibility) == len(b) and set(b.feasibility) <= {"ok", "unreachable", "jump"}
-        ok = np.array(b.feasibility) == "ok"
-        assert np.isfinite(b.q[ok]).all()
-    assert sum(b.feasible for b in path.branches) >= 3
+    assert len(path.branches) >= 4
+    ends = {e.split("+")[0] for b in path.branches for e in (b.start, b.end)}
+    assert {"J0", "J1"} <= ends and len(ends & {f"E{i}" for i in range(4)}) >= 2
+    for b in path.branches:  # every run is a joint path through all its poses
+        assert b.feasibility == ["ok"] * len(b) and np.isfinite(b.q).all()
+        assert np.abs(np.diff(b.q, axis=0)).max() <= CFG.max_joint_jump_rad + 2.0 * np.radians(40)
+    assert all(g.reason in GAP_REASONS + ("too short",) for g in path.gaps)
+    # nothing is dropped in silence: what is not cut is a reported gap
+    cut = sum(b.length_m for b in path.branches)
+    uncut = sum(g.length_m for g in path.gaps)
+    assert cut + uncut == pytest.approx(path.drawing_length_m, rel=0.03)
+    assert path.cut_fraction >= 0.7
     print(f"branched_cylinder: geometry {1e3 * (t1 - t0):.0f} ms, IK+trajectories {1e3 * (t2 - t1):.0f} ms, "
           f"{sum(len(b) for b in path.branches)} poses")
 
@@ -357,17 +333,21 @@ def test_write_and_read_back(kin, tmp_path):
     path = plan_cut(build_cut_path(drawing, surface, CFG), kin, PANDA_Q_READY, CFG)
     far = build_cut_path(Cloud(drawing.xyz + np.float32([3, 0, 0]), drawing.rgb, drawing.origin), None, CFG)
     plan_cut(far, kin, PANDA_Q_READY, CFG)
-    path.branches += far.branches  # one feasible, one unreachable (NaN joints)
+    path.gaps += far.gaps  # one cut, one stretch out of reach
+    path.drawing_length_m += far.drawing_length_m
     jpath, cpath = path.write(tmp_path / "out")
-    d = json.loads(jpath.read_text())  # strict JSON: NaN written as null
-    assert d["schema_version"] == 1 and len(d["branches"]) == 2
-    assert d["branches"][1]["q"][0] == [None] * 7
+    d = json.loads(jpath.read_text())  # strict JSON
+    assert d["schema_version"] == 2 and len(d["branches"]) == 1
+    assert [g["reason"] for g in d["gaps"]] == ["out of reach"]
+    assert d["cut_fraction"] == pytest.approx(0.5, abs=0.05)
     back = CutPath.read(tmp_path / "out")
     for a, b in zip(path.branches, back.branches):
         np.testing.assert_allclose(b.points, a.points)
         np.testing.assert_allclose(b.poses, a.poses)
         np.testing.assert_allclose(b.q, a.q, equal_nan=True)
-        assert b.feasibility == a.feasibility and b.start == a.start
+        assert b.feasibility == a.feasibility and b.start == a.start and b.feasible == a.feasible
+    assert back.cut_fraction == pytest.approx(path.cut_fraction, abs=1e-4)
+    np.testing.assert_allclose(back.gaps[0].points, path.gaps[0].points)
     with cpath.open() as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == sum(len(b) for b in path.branches)
@@ -377,7 +357,7 @@ def test_write_and_read_back(kin, tmp_path):
     assert abs(np.linalg.norm(quat) - 1) < 1e-6
     np.testing.assert_allclose([float(r[k]) for k in ("tip_x", "tip_y", "tip_z")], path.branches[0].poses[0, :3, 3],
                                atol=1e-6)
-    assert rows[-1]["reason"] == "unreachable" and rows[-1]["q1"] == "" and rows[-1]["feasible"] == "0"
+    assert all(r["reason"] == "ok" and r["q1"] != "" for r in rows)
 
 
 # ---------------------------------------------------------------------------- bad input

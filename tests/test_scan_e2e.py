@@ -48,7 +48,8 @@ def test_gnbv_covers_the_drawing(cell, scene, tmp_path):
     paths = set(store.schema().entity_paths())
     for entity in ("/world/captures/0", "/world/camera/image", "/world/camera/image/rgb", "/world/frontier",
                    "/world/viewpoints", "/world/view_path", "/world/drawing", "/world/candidates",
-                   "/world/robot/panda_hand", "/world/robot/panda_link4", "/world/cut/branch0", "/world/truth/object"):
+                   "/world/robot/panda_hand", "/world/robot/panda_link4", "/world/cut/cut0", "/world/cut/cut0/torch",
+                       "/world/truth/object"):
         assert entity in paths, (entity, sorted(paths))
     assert any(p.startswith("/world/robot/panda_hand/") for p in paths)  # the hand's geometry under its transform
     saved = json.loads((run_dir / "result.json").read_text())
@@ -95,8 +96,9 @@ def test_branched_drawing_reconstructed_to_all_four_extremities(cell, tmp_path):
 
 
 def test_scan_ends_with_a_cutting_path_the_twin_can_follow(cell, tmp_path):
-    """planning-cut after the scan: branches through the drawing's junction to its ends, torch poses on
-    the surface, files in the run folder, and a dry run whose tip follows the plan."""
+    """planning-cut after the scan: cuts through the drawing's junctions toward its ends, torch poses on
+    the surface within the tilt cone, what is not cut reported with its reason, files in the run
+    folder, the cuts measured against the true line, and a dry run whose tip follows the plan."""
     import csv
 
     from planners.cutpath import CutPath
@@ -104,11 +106,13 @@ def test_scan_ends_with_a_cutting_path_the_twin_can_follow(cell, tmp_path):
     result, run_dir = _scan(cell, "branched_cylinder", tmp_path, dry_run_cut=True)
     assert result.error is None and result.cut is not None and result.cut["error"] is None
     c = result.cut
-    # a straight torch cannot reach some poses at the drawing's far ends, and one such pose makes its whole
-    # branch infeasible (splitting branches into feasible runs is open): with the fewer views of the
-    # ends rule, 1 of 5 branches is feasible
-    assert c["branches"] >= 4 and c["feasible_branches"] >= 1 and c["feasible_poses"] >= 0.7 * c["poses"], c
-    assert 0.7 < c["length_m"] < 1.3  # the two painted lines are about 0.5 m each
+    # the arm cannot reach the drawing's far ends: those stretches are gaps with their reason, the rest is cut
+    assert c["feasible_branches"] >= 3 and c["cut_fraction"] >= 0.65, c
+    assert 0.7 < c["drawing_length_m"] < 1.3  # the two painted lines are about 0.5 m each
+    assert all(g["reason"] in ("out of reach", "joint limits", "collision", "singular", "reconfigure")
+               for g in c["gaps"]), c["gaps"]
+    a = c["accuracy"]
+    assert a["strokes"] == 2 and a["cut_coverage"] >= 0.6 and a["path_to_line_mean_mm"] <= 2.5, a
     path = CutPath.read(run_dir)
     ends = load_scene("branched_cylinder").extremities
     gap = np.linalg.norm(path.endpoints[None, :, :] - ends[:, None, :], axis=2).min(axis=1)
@@ -116,7 +120,8 @@ def test_scan_ends_with_a_cutting_path_the_twin_can_follow(cell, tmp_path):
     for b in path.branches:  # the tip stands off the drawing by the standoff, the torch points into it
         tips = b.poses[:, :3, 3]
         assert np.allclose(np.linalg.norm(tips - b.points, axis=1), 0.010, atol=1e-3)
-        assert np.all(np.einsum("ij,ij->i", b.poses[:, :3, 2], b.normals) < -0.95)
+        tilt = np.degrees(np.arccos(np.clip(-np.einsum("ij,ij->i", b.poses[:, :3, 2], b.normals), -1.0, 1.0)))
+        assert np.all(tilt <= 20.0 + 0.5), tilt.max()  # within the torch's tolerance cone
     with open(run_dir / "cut_path.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == c["poses"]

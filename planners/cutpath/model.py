@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from planners.motion.trajectory import JointPath
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 OK, UNPLANNED, UNREACHABLE, JUMP, COLLISION, VELOCITY = "ok", "unplanned", "unreachable", "jump", "collision", "velocity"
 REASONS = (OK, UNPLANNED, UNREACHABLE, JUMP, COLLISION, VELOCITY)
@@ -46,6 +46,9 @@ class Branch:
     cut: JointPath | None = None  # the cut itself, sampled every dt
     retract: JointPath | None = None  # last pose -> retract_q
     issues: list[str] = field(default_factory=list)  # what keeps a branch from running, beyond the per-pose reasons
+    tilt_rad: np.ndarray | None = None  # (N,) torch axis from the inward normal, as the ladder chose it
+    source: int | None = None  # index of the drawing branch this run was cut from
+    stored_feasible: bool | None = None  # the verdict a file read back holds (its trajectories are not stored)
 
     def __post_init__(self) -> None:
         n = len(self.points)
@@ -69,6 +72,8 @@ class Branch:
     @property
     def feasible(self) -> bool:
         """Every pose solved, continuous and free, and the approach and retract planned."""
+        if self.stored_feasible is not None and self.approach is None and self.retract is None:
+            return self.stored_feasible
         return (len(self.points) > 0 and all(f == OK for f in self.feasibility) and not self.issues
                 and self.approach is not None and self.retract is not None)
 
@@ -82,13 +87,38 @@ class Branch:
 
 
 @dataclass
+class Gap:
+    """A stretch of a drawing branch left uncut, and why (planners.cutpath.ladder.GAP_REASONS, or
+    "too short"). A "reconfigure" gap has length 0: the torch lifts and lands again there."""
+
+    branch: int  # index of the drawing branch
+    start: np.ndarray  # (3,) last cut point before it (the branch's start if none)
+    end: np.ndarray  # (3,) first cut point after it (the branch's end if none)
+    length_m: float
+    reason: str
+    detail: str = ""
+    points: np.ndarray | None = None  # (K,3) the uncut stretch along the drawing, start to end
+    normal: np.ndarray | None = None  # (3,) mean outward surface normal over it (where the torch would be)
+
+    def to_json_dict(self) -> dict:
+        return {"branch": self.branch, "start": _lists(self.start), "end": _lists(self.end),
+                "length_m": round(float(self.length_m), 4), "reason": self.reason, "detail": self.detail,
+                "points": _lists(self.points), "normal": _lists(self.normal)}
+
+
+@dataclass
 class CutPath:
-    """All branches of one drawing, with the junction and end positions they run between."""
+    """All branches of one drawing, with the junction and end positions they run between. After
+    planning (``plan_cut``) the branches are the cuttable runs in cutting order and ``gaps`` what
+    is left uncut."""
 
     branches: list[Branch]
     junctions: np.ndarray  # (J,3)
     endpoints: np.ndarray  # (E,3)
     config: dict = field(default_factory=dict)  # the CutPathConfig it was made with
+    gaps: list[Gap] = field(default_factory=list)
+    drawing_length_m: float | None = None  # the drawing's branches before planning split them
+    notes: list[str] = field(default_factory=list)  # what the operator should know about the drawing
 
     @property
     def feasible(self) -> bool:
@@ -97,6 +127,17 @@ class CutPath:
     @property
     def length_m(self) -> float:
         return float(sum(b.length_m for b in self.branches))
+
+    @property
+    def cut_length_m(self) -> float:
+        """Length the torch will cut: the feasible runs."""
+        return float(sum(b.length_m for b in self.branches if b.feasible))
+
+    @property
+    def cut_fraction(self) -> float:
+        """Share of the drawing's length that will be cut (0 when there is no drawing)."""
+        total = self.drawing_length_m if self.drawing_length_m is not None else self.length_m
+        return min(1.0, self.cut_length_m / total) if total > 0 else 0.0
 
     # ------------------------------------------------------------------ files
 
@@ -118,6 +159,8 @@ class CutPath:
                 "approach_q": _lists(b.approach_q), "retract_q": _lists(b.retract_q),
                 "approach_duration_s": dur(b.approach), "cut_duration_s": dur(b.cut),
                 "retract_duration_s": dur(b.retract),
+                "tilt_deg": None if b.tilt_rad is None else _lists(np.degrees(b.tilt_rad)),
+                "source": b.source,
             })
         return {
             "schema_version": SCHEMA_VERSION,
@@ -125,6 +168,11 @@ class CutPath:
             "frame": "robot base",
             "feasible": self.feasible,
             "length_m": self.length_m,
+            "drawing_length_m": self.drawing_length_m,
+            "cut_length_m": self.cut_length_m,
+            "cut_fraction": round(self.cut_fraction, 4),
+            "gaps": [g.to_json_dict() for g in self.gaps],
+            "notes": list(self.notes),
             "junctions": _lists(self.junctions),
             "endpoints": _lists(self.endpoints),
             "config": self.config,
@@ -152,8 +200,17 @@ class CutPath:
             br.approach_q = None if b["approach_q"] is None else np.array(b["approach_q"], dtype=np.float64)
             br.retract_q = None if b["retract_q"] is None else np.array(b["retract_q"], dtype=np.float64)
             br.issues = list(b["issues"])
+            br.tilt_rad = None if b.get("tilt_deg") is None else np.radians(np.array(b["tilt_deg"], dtype=np.float64))
+            br.source = b.get("source")
+            br.stored_feasible = bool(b["feasible"])
             branches.append(br)
-        return cls(branches, arr(d["junctions"], (3,)), arr(d["endpoints"], (3,)), dict(d.get("config", {})))
+        gaps = [Gap(int(g["branch"]), np.array(g["start"], dtype=np.float64), np.array(g["end"], dtype=np.float64),
+                    float(g["length_m"]), str(g["reason"]), str(g.get("detail", "")),
+                    None if g.get("points") is None else np.array(g["points"], dtype=np.float64).reshape(-1, 3),
+                    None if g.get("normal") is None else np.array(g["normal"], dtype=np.float64))
+                for g in d.get("gaps", [])]
+        return cls(branches, arr(d["junctions"], (3,)), arr(d["endpoints"], (3,)), dict(d.get("config", {})), gaps,
+                   d.get("drawing_length_m"), list(d.get("notes", [])))
 
     def write(self, folder: str | Path) -> tuple[Path, Path]:
         """cut_path.json and cut_path.csv in `folder` (created). Returns their paths."""

@@ -6,15 +6,16 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 from planners.clouds import Cloud
 from planners.cutpath import _checks
 from planners.cutpath.config import CutPathConfig
 from planners.cutpath.geometry import Surface, on_surface, smooth_resample, torch_poses
 from planners.cutpath.graph import END, JUNCTION, LOOP, drawing_graph
-from planners.cutpath.model import COLLISION, JUMP, OK, UNREACHABLE, VELOCITY, Branch, CutPath
-from planners.motion.ik import Unreachable, solve_camera_ik
+from planners.cutpath.ladder import RECONFIGURE, cut_spline, every_degree, plan_ladder, tilt_directions
+from planners.cutpath.pieces import short_pieces
+from planners.cutpath.model import OK, Branch, CutPath, Gap
+from planners.motion.ik_batch import solve_axis_ik_batch
 from planners.motion.kinematics import Kinematics
 from planners.motion.limits import (
     PANDA_JOINT_NAMES,
@@ -79,19 +80,67 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | No
         poses = torch_poses(pts, normals, cfg.standoff_m, closed)
         a, b = g.ends[i]
         branches.append(Branch(pts, normals, poses, np.full(len(pts), cfg.travel_speed_mps), label[a], label[b], closed))
+    pieces, ignored = short_pieces(d_xyz, g.branches, surf, voxel_m=cfg.voxel_m, spacing_m=cfg.spacing_m,
+                                   bridge_max_m=cfg.bridge_max_m, min_piece_m=cfg.min_piece_m)
+    for j, piece in enumerate(pieces):  # a broken line: a short cut through each piece of paint
+        pts, normals = on_surface(piece.line, surf, cfg.spacing_m)
+        if len(pts) < 2:
+            ignored += 1
+            continue
+        poses = torch_poses(pts, normals, cfg.standoff_m)
+        branches.append(Branch(pts, normals, poses, np.full(len(pts), cfg.travel_speed_mps), f"P{j}a", f"P{j}b"))
     nodes = g.nodes
     if len(nodes):
         nodes = surf.snap(nodes, surf.normals(nodes))
     kinds = np.array(g.kinds)
-    return CutPath(branches, nodes[kinds == JUNCTION].reshape(-1, 3), nodes[kinds == END].reshape(-1, 3),
+    path = CutPath(branches, nodes[kinds == JUNCTION].reshape(-1, 3), nodes[kinds == END].reshape(-1, 3),
                    cfg.model_dump(mode="json"))
+    if pieces:
+        path.notes.append(f"the line is broken: {len(pieces)} separate pieces of paint, each a short cut along it")
+    if ignored:
+        path.notes.append(f"{ignored} specks of paint too small to be part of a line were left out")
+    return path
 
 
-def _ik(kin: Kinematics, T: np.ndarray, seed: np.ndarray, cfg: CutPathConfig, seeds: int) -> np.ndarray | None:
-    try:
-        return solve_camera_ik(kin, T, seed, free_roll=cfg.free_roll, margin=cfg.ik_margin_rad, seeds=seeds).q
-    except Unreachable:
-        return None
+
+
+def _stand_off(kin: Kinematics, T: np.ndarray, q_near: np.ndarray, cfg: CutPathConfig,
+               is_free: IsFree | None, distances: tuple[float, ...] | None = None) -> np.ndarray | None:
+    """A configuration holding the torch ``approach_m`` back from the cut's first (or last) pose,
+    pointing at it, so that the torch plunges straight in: along the cut's own torch axis first,
+    then along the other axes of the tilt cone, then half as far back; the free solution nearest
+    to ``q_near`` in joint space. None when there is none."""
+    D = tilt_directions(cfg)
+    axes = np.einsum("ij,oj->oi", T[:3, :3], D)
+    tip = T[:3, 3]
+    for dist in distances or (cfg.approach_m, 0.5 * cfg.approach_m):
+        Q, ok = solve_axis_ik_batch(kin, tip - dist * axes, axes, np.tile(q_near, (len(D), 1)),
+                                    margin=cfg.ik_margin_rad,
+                                    x_axes=None if cfg.free_roll else np.tile(T[:3, 0], (len(D), 1)))
+        if not ok.any():
+            continue
+        cand = np.flatnonzero(ok)
+        cand = cand[_free(is_free, Q[cand])]
+        if len(cand):
+            return Q[cand[np.argmin(np.abs(Q[cand] - q_near).max(axis=1))]].copy()
+    return None
+
+
+def _air_routes(kin: Kinematics, q_from: np.ndarray, q_to: np.ndarray, cfg: CutPathConfig, is_free: IsFree | None,
+                park_q: np.ndarray | None):
+    """Waypoint routes for an air move that is not clear straight: both ends lifted further back
+    along their torch axes (2x, 4x the approach distance), then via the park pose."""
+    lifts = []
+    for k in (2.0, 4.0):
+        up_from = _stand_off(kin, kin.fk(q_from), q_from, cfg, is_free, (k * cfg.approach_m,))
+        up_to = _stand_off(kin, kin.fk(q_to), q_to, cfg, is_free, (k * cfg.approach_m,))
+        if up_from is not None and up_to is not None:
+            lifts.append((up_from, up_to))
+            yield [q_from, up_from, up_to, q_to]
+    if park_q is not None:
+        yield [q_from, park_q, q_to]
+        for up_from, up_to in lifts:
+            yield [q_from, up_from, park_q, up_to, q_to]
 
 
 def _backed_off(T: np.ndarray, distance: float) -> np.ndarray:
@@ -109,69 +158,65 @@ def _free(is_free: IsFree | None, Q: np.ndarray) -> np.ndarray:
     return out.astype(bool)
 
 
-def solve_branch(kin: Kinematics, b: Branch, q_seed: np.ndarray, cfg: CutPathConfig,
-                 is_free: IsFree | None = None, max_vel: np.ndarray = PANDA_MAX_VELOCITY) -> None:
-    """Joint solutions pose by pose, each seeded from the one before (so the arm follows the
-    path instead of jumping between IK branches), and the per-pose verdict: unreachable, jump
-    (a joint moves more than max_joint_jump_rad between neighbours), collision, velocity (the
-    cut at travel speed needs more than the joint limit), else ok."""
-    n = len(b)
-    Q = np.full((n, kin.dof), np.nan)
-    why = [OK] * n
-    seed, fresh = q_seed, True
-    for k in range(n):  # sequential by nature: pose k is seeded from pose k-1
-        q = _ik(kin, b.poses[k], seed, cfg, cfg.ik_seeds if fresh else 1)
-        if q is None and not fresh:
-            q = _ik(kin, b.poses[k], seed, cfg, cfg.ik_seeds)
-        if q is None:
-            why[k] = UNREACHABLE
-            continue
-        Q[k] = q
-        if k > 0 and np.isfinite(Q[k - 1]).all() and np.abs(q - Q[k - 1]).max() > cfg.max_joint_jump_rad:
-            why[k] = JUMP
-        seed, fresh = q, False
-    solved = np.isfinite(Q).all(axis=1)
-    if n > 1:
-        qd = np.gradient(Q, b.times, axis=0)
-    else:
-        qd = np.zeros_like(Q)
-    too_fast = np.any(np.abs(qd) > np.asarray(max_vel)[None, :], axis=1)
-    free = np.ones(n, dtype=bool)
-    free[solved] = _free(is_free, Q[solved])
-    for k in np.flatnonzero(solved & ~free):
-        if why[k] == OK:
-            why[k] = COLLISION
-    for k in np.flatnonzero(solved & too_fast):
-        if why[k] == OK:
-            why[k] = VELOCITY
-    b.q, b.qd, b.feasibility = Q, qd, why
-
-
 def _cut_trajectory(b: Branch, dt: float) -> JointPath:
-    """The cut sampled every dt: a cubic through the pose solutions at their times, at rest at
-    both ends (the arm arrives from the approach and leaves for the retract stopped)."""
+    """The cut sampled every dt (``ladder.cut_spline``, the motion the ladder checked)."""
     if len(b) == 1:
         z = np.zeros((1, b.q.shape[1]))
         return JointPath(np.zeros(1), b.q.copy(), z, z.copy(), 0.0)
-    spline = CubicSpline(b.times, b.q, axis=0, bc_type="clamped")
+    spline = cut_spline(b.times, b.q)
     t = np.append(np.arange(0.0, b.times[-1], dt), b.times[-1])
     return JointPath(t, spline(t), spline(t, 1), spline(t, 2), float(t[-1]))
 
 
+def _runs_of(b: Branch, index: int, kin: Kinematics, q_here: np.ndarray, cfg: CutPathConfig,
+             is_free: IsFree | None, max_vel: np.ndarray) -> tuple[list[Branch], list[Gap]]:
+    """The ladder graph along one branch: its cuttable runs as branches of their own (joint
+    solutions chosen, poses tilted as chosen) and its uncut gaps with their reasons."""
+    lad = plan_ladder(kin, b.poses, b.times, q_here, cfg, is_free, max_vel)
+    n = len(b)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(b.points, axis=0), axis=1))])
+    runs = []
+    for r in lad.runs:
+        sl = slice(r.first, r.last + 1)
+        start = b.start if r.first == 0 else f"{b.start}+{s[r.first]:.3f}m"
+        end = b.end if r.last == n - 1 else f"{b.start}+{s[r.last]:.3f}m"
+        rb = Branch(b.points[sl].copy(), b.normals[sl].copy(), r.poses, b.speeds[sl].copy(), start, end,
+                    closed=b.closed and r.first == 0 and r.last == n - 1, feasibility=[OK] * (r.last - r.first + 1),
+                    q=r.q, times=r.times)
+        rb.tilt_rad = r.tilt_rad
+        rb.qd = np.gradient(rb.q, rb.times, axis=0) if len(rb) > 1 else np.zeros_like(rb.q)
+        rb.source = index
+        runs.append(rb)
+    gaps = []
+    for g in lad.gaps:
+        a = b.points[max(g.after, 0)] if g.after >= 0 else b.points[0]
+        z = b.points[min(g.before, n - 1)]
+        length = 0.0 if g.reason == RECONFIGURE else float(s[min(g.before, n - 1)] - s[max(g.after, 0)])
+        sl = slice(max(g.after, 0), min(g.before, n - 1) + 1)
+        nrm = b.normals[sl].mean(axis=0)
+        nrm = nrm / max(np.linalg.norm(nrm), 1e-12)
+        gaps.append(Gap(index, a.copy(), z.copy(), length, g.reason, g.detail, b.points[sl].copy(), nrm))
+    return runs, gaps
+
+
 def plan_cut(path: CutPath, kin: Kinematics, q_start: np.ndarray, cfg: CutPathConfig | None = None, *,
              is_free: IsFree | None = None, max_vel: np.ndarray = PANDA_MAX_VELOCITY,
-             max_acc: np.ndarray = PANDA_MAX_ACCELERATION, max_jerk: np.ndarray = PANDA_MAX_JERK) -> CutPath:
-    """Joint motion for every branch in turn, in place (and returned): IK along the poses, the
-    cut timed by the travel speed, an approach from where the arm is (the start, then each
-    retract) through the backed-off pose down to the first pose, and a retract to the backed-off
-    last pose. A branch that cannot be run leaves the arm where it was for the next one.
+             max_acc: np.ndarray = PANDA_MAX_ACCELERATION, max_jerk: np.ndarray = PANDA_MAX_JERK,
+             park_q: np.ndarray | None = None) -> CutPath:
+    """Joint motion for the drawing, in place (and returned). Each branch goes through the ladder
+    graph (``ladder.py``: the torch within its tilt tolerances, batched IK, lazy collision checks,
+    the cheapest continuous joint path) and becomes its maximal cuttable runs; ``path.branches``
+    is then the list of runs in cutting order and ``path.gaps`` what is left uncut and why. Each
+    run gets its cut timed by the travel speed, an approach from where the arm is (the start, then
+    each retract) through the backed-off pose, and a retract to the backed-off last pose.
 
     Args:
         kin: kinematics whose tool frame is the torch tip (see `torch_kinematics`).
         q_start: (dof,) configuration the arm is in, inside kin's limits.
-        is_free: optional collision check, (N,dof) -> (N,) bool; False marks a pose 'collision'
-            and an approach or retract through such a configuration an issue.
+        is_free: optional collision check, (N,dof) -> (N,) bool; False marks a configuration in
+            collision, and an approach or retract through one an issue.
         max_vel, max_acc, max_jerk: the arm's limits (dof,).
+        park_q: a configuration clear above the cell: an air move that collides goes through it.
 
     Raises:
         ValueError: malformed q_start or limits, q_start outside kin's limits, is_free returning
@@ -181,47 +226,87 @@ def plan_cut(path: CutPath, kin: Kinematics, q_start: np.ndarray, cfg: CutPathCo
     q_here = kin._vec(q_start, "q_start")
     if not kin.within_limits(q_here):
         raise ValueError(f"q_start {q_here} is outside the joint limits {kin.lower} .. {kin.upper}")
+    if park_q is not None:
+        park_q = kin._vec(park_q, "park_q")
     lim = {}
     for name, v in (("max_vel", max_vel), ("max_acc", max_acc), ("max_jerk", max_jerk)):
         a = np.asarray(v, dtype=np.float64)
         if a.shape != (kin.dof,) or not np.all(np.isfinite(a)) or not np.all(a > 0):
             raise ValueError(f"{name} must be {kin.dof} finite positive values, got {v!r}")
         lim[name] = a
-    for i, b in enumerate(path.branches):  # a handful of branches
-        if len(b) == 0:
-            continue
+    path.drawing_length_m = path.length_m
+    todo = [(i, b) for i, b in enumerate(path.branches) if len(b) > 0]
+    runs_out: list[Branch] = []
+    path.gaps = []
+    while todo:  # nearest branch end next: air moves stay short
+        tip = kin.fk(q_here)[:3, 3]
+        d = [min(np.linalg.norm(b.poses[0, :3, 3] - tip), np.inf if b.closed else np.linalg.norm(b.poses[-1, :3, 3] - tip))
+             for _, b in todo]
+        i, b = todo.pop(int(np.argmin(d)))
         if cfg.reverse_branches and not b.closed and len(b) > 1:
-            tip = kin.fk(q_here)[:3, 3]
             if np.linalg.norm(b.poses[-1, :3, 3] - tip) < np.linalg.norm(b.poses[0, :3, 3] - tip):
-                b = path.branches[i] = b.reversed()
-        solve_branch(kin, b, q_here, cfg, is_free, lim["max_vel"])
-        b.issues, b.approach, b.cut, b.retract = [], None, None, None
-        if any(f != OK for f in b.feasibility):
-            bad = sum(f != OK for f in b.feasibility)
-            b.issues.append(f"{bad} of {len(b)} poses infeasible")
+                b = b.reversed()
+        if len(b) < 2:
+            path.gaps.append(Gap(i, b.points[0].copy(), b.points[-1].copy(), 0.0, "too short",
+                                 "a single torch pose is not a cut"))
             continue
-        b.cut = _cut_trajectory(b, cfg.dt_s)
-        if np.any(np.abs(b.cut.velocities) > lim["max_vel"] + 1e-9):
-            b.issues.append("the timed cut exceeds a joint velocity limit")
-        b.approach_q = _ik(kin, _backed_off(b.poses[0], cfg.approach_m), b.q[0], cfg, cfg.ik_seeds)
-        b.retract_q = _ik(kin, _backed_off(b.poses[-1], cfg.approach_m), b.q[-1], cfg, cfg.ik_seeds)
-        motion = dict(speed_factor=cfg.approach_speed_factor, dt=cfg.dt_s, lower=kin.lower, upper=kin.upper)
-        for what, goal in (("approach", b.approach_q), ("retract", b.retract_q)):
-            if goal is None:
-                b.issues.append(f"{what} pose unreachable")
-                continue
-            waypoints = np.stack([q_here, goal, b.q[0]]) if what == "approach" else np.stack([b.q[-1], goal])
-            try:
-                jp = plan_through(waypoints, lim["max_vel"], lim["max_acc"], lim["max_jerk"], **motion)
-            except ValueError as exc:  # e.g. the time-optimal motion overshoots a joint limit
-                b.issues.append(f"{what}: {exc}")
-                continue
-            if not _free(is_free, jp.positions).all():
-                b.issues.append(f"{what} collides")
-            setattr(b, what, jp)
-        if b.feasible:
-            q_here = b.retract_q
+        runs, gaps = _runs_of(b, i, kin, q_here, cfg, is_free, lim["max_vel"])
+        path.gaps += gaps
+        for rb in runs:
+            _time_run(rb, kin, q_here, cfg, is_free, lim, park_q)
+            runs_out.append(rb)
+            if rb.feasible:
+                q_here = rb.retract_q
+    path.branches = runs_out
     return path
+
+
+def _time_run(b: Branch, kin: Kinematics, q_here: np.ndarray, cfg: CutPathConfig, is_free: IsFree | None,
+              lim: dict, park_q: np.ndarray | None = None) -> None:
+    """The cut sampled in time, and the approach and retract motions, for one run (issues noted)."""
+    b.issues, b.approach, b.cut, b.retract = [], None, None, None
+    b.cut = _cut_trajectory(b, cfg.dt_s)
+    if np.any(np.abs(b.cut.velocities) > lim["max_vel"] + 1e-9):
+        b.issues.append("the timed cut exceeds a joint velocity limit")
+    if not _free(is_free, b.cut.positions[every_degree(b.cut.positions)]).all():  # between the rungs, pivots included
+        b.issues.append("the cut collides between its poses")
+    b.approach_q = _stand_off(kin, b.poses[0], b.q[0], cfg, is_free)
+    b.retract_q = _stand_off(kin, b.poses[-1], b.q[-1], cfg, is_free)
+    motion = dict(speed_factor=cfg.approach_speed_factor, dt=cfg.dt_s, lower=kin.lower, upper=kin.upper)
+
+    def timed(waypoints: list[np.ndarray]) -> JointPath:
+        return plan_through(np.stack(waypoints), lim["max_vel"], lim["max_acc"], lim["max_jerk"], **motion)
+
+    def clear(waypoints: list[np.ndarray]) -> bool:
+        try:
+            return bool(_free(is_free, timed(waypoints).positions).all())
+        except ValueError:
+            return False
+
+    for what, goal in (("approach", b.approach_q), ("retract", b.retract_q)):
+        if goal is None:
+            b.issues.append(f"{what} pose unreachable: no collision-free configuration holds the torch "
+                            f"{cfg.approach_m:g} m back from the cut's {'first' if what == 'approach' else 'last'} pose")
+            continue
+        if what == "retract":
+            waypoints = [b.q[-1], goal]
+        else:  # the air move to the stand-off pose: straight in joint space, else lifted, else via park
+            waypoints = [q_here, goal, b.q[0]]
+            if not clear([q_here, goal]):
+                for via in _air_routes(kin, q_here, goal, cfg, is_free, park_q):
+                    if all(clear([u, v]) for u, v in zip(via[:-1], via[1:])):
+                        waypoints = via + [b.q[0]]
+                        break
+        try:
+            jp = timed(waypoints)
+        except ValueError as exc:  # e.g. the time-optimal motion overshoots a joint limit
+            b.issues.append(f"{what}: {exc}")
+            continue
+        if not _free(is_free, jp.positions).all():
+            part = "the plunge to the cut" if what == "approach" and clear(waypoints[:-1]) else (
+                "the air move" if what == "approach" else "the lift off the cut")
+            b.issues.append(f"{what} collides ({part})")
+        setattr(b, what, jp)
 
 
 def plan_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | None, kin: Kinematics,

@@ -1,0 +1,389 @@
+"""A branch's torch poses -> joint solutions by a ladder graph, as Descartes and Tesseract plan
+process paths: the torch is held within a tolerance, not at one exact pose.
+
+Every path point gets rungs: the torch axis sampled in a cone about the surface normal (lead/lag
+along the travel, side tilt across it; roll about the axis is free for a round nozzle), each solved
+by batched IK from several seeds, so each seed tends to stay on one arm configuration ("track").
+Consecutive rungs are joined where no joint moves more than ``max_joint_jump_rad`` and the joint
+speed at travel speed stays under the arm's limit. Collision checks are lazy (the expensive part):
+only rungs on a chosen path are checked, and where one collides its whole layer and the layers
+beside it are, before the search runs again.
+
+Where no continuous path exists the branch splits into maximal cuttable runs (greedy from the start:
+each run as long as the graph allows, which gives the fewest runs), and every uncut stretch is a gap
+with its reason. Within a run the cheapest path (tilt away from the normal, joint motion) is found
+by scipy's Dijkstra on the layered graph."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.interpolate import CubicHermiteSpline, PchipInterpolator
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from planners.config import CutPathConfig
+from planners.motion.ik_batch import solve_axis_ik_batch
+from planners.motion.kinematics import Kinematics
+
+IsFree = Callable[[np.ndarray], np.ndarray]
+
+OUT_OF_REACH, JOINT_LIMITS, COLLISION = "out of reach", "joint limits", "collision"
+SINGULAR, RECONFIGURE = "singular", "reconfigure"
+GAP_REASONS = (OUT_OF_REACH, JOINT_LIMITS, COLLISION, SINGULAR, RECONFIGURE)
+#: joint change allowed per radian the torch axis turns between two path points (a pivot)
+PIVOT_GAIN = 2.0
+#: share of each joint's speed limit a pivot may use (the timed spline overshoots the secant a little)
+PIVOT_SPEED = 0.5
+_WHY = {OUT_OF_REACH: "the torch pose is beyond the arm's reach at every tilt",
+        JOINT_LIMITS: "in reach, but no configuration within the joint limits holds the torch there",
+        COLLISION: "every configuration that holds the torch there collides with the scanned piece or the arm",
+        SINGULAR: "reachable, but no configuration joins its neighbours within the joint jump and speed limits "
+                  "(near a singularity or a configuration change)",
+        RECONFIGURE: "the arm lifts the torch and changes configuration here; nothing is left uncut"}
+
+
+@dataclass
+class Run:
+    """Layers first..last (inclusive) cut in one go: the chosen rung per layer."""
+
+    first: int
+    last: int
+    q: np.ndarray  # (L, dof)
+    poses: np.ndarray  # (L, 4, 4) the tilted torch poses chosen
+    tilt_rad: np.ndarray  # (L,) angle between the torch axis and the inward normal
+    times: np.ndarray  # (L,) s from the first pose (``pivot_times``): the motion that was checked
+
+
+@dataclass
+class Gap:
+    """Not cut between layer ``after`` (the last cut pose before it, -1 at the branch start) and
+    layer ``before`` (the first cut pose after it, N at the branch end). ``after == before`` is a
+    reconfiguration: the torch lifts and lands again at the same pose, nothing is left uncut."""
+
+    after: int
+    before: int
+    reason: str
+    detail: str = ""
+
+    @property
+    def uncut_layers(self) -> range:
+        return range(self.after + 1, self.before)
+
+
+@dataclass
+class Ladder:
+    runs: list[Run] = field(default_factory=list)
+    gaps: list[Gap] = field(default_factory=list)
+    layer_reason: list[str] = field(default_factory=list)  # per layer: "" if it has a free rung
+
+
+def tilt_directions(cfg: CutPathConfig) -> np.ndarray:
+    """(O, 3) torch axes in the nominal pose's frame (x travel, y across, z into the metal): the
+    normal first, then an elliptic grid of lead/lag and side tilts within the cone."""
+    a = np.radians(cfg.lead_lag_max_deg)
+    b = np.radians(cfg.side_tilt_max_deg)
+    n = cfg.tilt_steps
+    f = np.linspace(-1.0, 1.0, 2 * n + 1) if n > 0 else np.zeros(1)
+    u, v = np.meshgrid(f * a, f * b, indexing="ij")
+    u, v = u.ravel(), v.ravel()
+    inside = (u / max(a, 1e-12)) ** 2 + (v / max(b, 1e-12)) ** 2 <= 1.0 + 1e-9
+    u, v = u[inside], v[inside]
+    order = np.argsort(np.hypot(u, v), kind="stable")  # the normal (0, 0) first
+    u, v = u[order], v[order]
+    d = np.stack([np.sin(u) * np.cos(v), np.sin(v), np.cos(u) * np.cos(v)], axis=1)
+    keep = np.unique(np.round(d, 9), axis=0, return_index=True)[1]
+    return d[np.sort(keep)]
+
+
+def _global_seeds(kin: Kinematics, q_start: np.ndarray, count: int, margin: float) -> np.ndarray:
+    lo, hi = kin.lower + margin, kin.upper - margin
+    rng = np.random.default_rng(0)
+    seeds = [np.clip(q_start, lo, hi)]
+    if count > 1:
+        seeds += list(rng.uniform(lo, hi, size=(count - 1, kin.dof)))
+    return np.array(seeds)
+
+
+def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: np.ndarray, cfg: CutPathConfig,
+                is_free: IsFree | None, max_vel: np.ndarray) -> Ladder:
+    """Runs and gaps along one branch's nominal torch poses (N,4,4) timed by ``times`` (N,)."""
+    N = len(poses)
+    D = tilt_directions(cfg)  # (O,3)
+    O, S, dof = len(D), cfg.ik_seeds, kin.dof
+    axes = np.einsum("nij,oj->noi", poses[:, :3, :3], D)  # (N,O,3) torch axis in base
+    tips = poses[:, None, :3, 3] + cfg.standoff_m * (poses[:, None, :3, 2] - axes)  # tilt about the paint point
+    centre, radius = kin.reach_sphere("cam")
+    in_reach = np.linalg.norm(tips - centre, axis=2) <= radius  # (N,O)
+
+    # 1. each seed solved at the normal of every layer, 2. from there at every tilt, 3. gaps in a
+    # track filled from the neighbouring layer's solution in the same track
+    seeds = _global_seeds(kin, q_start, S, cfg.ik_margin_rad)
+    # a fixed roll keeps the torch's x along the travel (the nominal pose's x made orthogonal to the axis)
+    xs = None if cfg.free_roll else np.broadcast_to(poses[:, None, :3, 0], axes.shape)
+    Qn, okn = solve_axis_ik_batch(kin, np.repeat(tips[:, 0], S, 0), np.repeat(axes[:, 0], S, 0),
+                                  np.tile(seeds, (N, 1)), margin=cfg.ik_margin_rad,
+                                  x_axes=None if xs is None else np.repeat(xs[:, 0], S, 0))
+    Qn, okn = Qn.reshape(N, S, dof), okn.reshape(N, S)
+    Q = np.full((N, O, S, dof), np.nan)
+    ok = np.zeros((N, O, S), dtype=bool)
+    seed = np.broadcast_to(Qn[:, None], (N, O, S, dof))
+    Q[:], ok[:] = _solve(kin, tips, axes, seed, np.broadcast_to(okn[:, None], (N, O, S)), cfg, xs)
+    for direction in (1, -1, 1):  # sweeps: a track that failed takes its neighbour's solution as seed
+        src = np.roll(Q, direction, axis=0)
+        src_ok = np.roll(ok, direction, axis=0)
+        if direction == 1:
+            src_ok[0] = False
+        else:
+            src_ok[-1] = False
+        todo = ~ok & src_ok
+        if not todo.any():
+            continue
+        Qs, oks = _solve(kin, tips, axes, src, todo, cfg, xs)
+        Q[todo], ok[todo] = Qs[todo], oks[todo]
+
+    # nodes: (layer, rung) with rung = o*S + s
+    Qf = Q.reshape(N, O * S, dof)
+    valid = ok.reshape(N, O * S) & np.repeat(in_reach, S, axis=1)
+    tilt = np.repeat(np.arccos(np.clip(D[:, 2], -1.0, 1.0)), S)  # (O*S,)
+    checked = np.zeros_like(valid)
+    free = np.ones_like(valid)
+
+    rung_axis = np.repeat(axes, S, axis=1)  # (N, O*S, 3)
+    tips_r = tips  # (N, O, 3): a rung's tip is tips[layer, rung // S]
+
+    def edges(k: int, usable: np.ndarray) -> np.ndarray:
+        """(R,R) bool: rung i of layer k joins rung j of layer k+1. The joints may move
+        ``max_joint_jump_rad`` plus what turning the torch between the two rungs needs (PIVOT_GAIN
+        per radian): at a sharp corner of the line the torch pivots about its tip, the joints turn
+        with it, and the cut slows down there (``pivot_times``); a jump without such a turn is a
+        change of arm configuration, which needs the torch lifted."""
+        dq = np.abs(Qf[k + 1][None, :, :] - Qf[k][:, None, :])
+        turn = np.arccos(np.clip(rung_axis[k] @ rung_axis[k + 1].T, -1.0, 1.0))
+        good = dq.max(axis=2) <= cfg.max_joint_jump_rad + PIVOT_GAIN * turn
+        if k in blocked:
+            a, b = np.array(blocked[k]).T
+            good[a, b] = False
+        return good & usable[k][:, None] & usable[k + 1][None, :]
+
+    blocked: dict[int, list[tuple[int, int]]] = {}  # edges whose motion collides
+    edge_ok: set = set()  # runs whose motion was found free
+    while True:
+        usable = valid & free
+        runs = _split(N, usable, edges)
+        chosen = [_cheapest(r, usable, edges, Qf, tilt, cfg) for r in runs]
+        # lazy collision check of the chosen rungs; a hit checks its layer and two either side
+        hit_layers = set()
+        if is_free is not None:
+            for (first, last), rungs in zip(runs, chosen):
+                lay = np.arange(first, last + 1)
+                need = ~checked[lay, rungs]
+                if need.any():
+                    res = _free(is_free, Qf[lay[need], rungs[need]])
+                    checked[lay[need], rungs[need]] = True
+                    free[lay[need], rungs[need]] = res
+                    hit_layers.update(lay[need][~res].tolist())
+        if not hit_layers and is_free is not None:
+            # the rungs are free: now the motion between them (joint-space steps of at most 1 degree)
+            hit_edges = _check_motion(runs, chosen, Qf, tips_r, S, cfg, max_vel, is_free, edge_ok)
+            for k, a, b in hit_edges:
+                blocked.setdefault(k, []).append((a, b))
+            if hit_edges:
+                continue
+        if not hit_layers:
+            break
+        near = sorted({j for k in hit_layers for j in range(k - 2, k + 3) if 0 <= j < N})
+        for k in near:
+            need = valid[k] & ~checked[k]
+            if need.any():
+                idx = np.flatnonzero(need)
+                free[k, idx] = _free(is_free, Qf[k, idx])
+                checked[k, idx] = True
+
+    out = Ladder()
+    usable = valid & free
+    # how close the best failed attempt got the tip: beyond 1 cm the point is out of the arm's
+    # reach (with its joint limits), within it the limits or the axis stop it
+    lost = ~valid.any(axis=1)
+    near_miss = np.zeros(N, dtype=bool)
+    if lost.any():
+        tries = Qf[lost].reshape(-1, dof)
+        err = np.linalg.norm(kin.fk_batch(np.nan_to_num(tries))[:, :3, 3]
+                             - np.repeat(tips[lost], S, axis=1).reshape(-1, 3), axis=1)
+        near_miss[lost] = (err.reshape(lost.sum(), O * S) <= 0.01).any(axis=1)
+    for k in range(N):  # a reason per layer, from whole-layer masks
+        if usable[k].any():
+            out.layer_reason.append("")
+        elif not in_reach[k].any() or (not valid[k].any() and not near_miss[k]):
+            out.layer_reason.append(OUT_OF_REACH)
+        elif valid[k].any():
+            out.layer_reason.append(COLLISION)
+        else:
+            out.layer_reason.append(JOINT_LIMITS)
+    for (first, last), rungs in zip(runs, chosen):
+        lay = np.arange(first, last + 1)
+        o = rungs // S
+        T = poses[lay].copy()
+        z = axes[lay, o]
+        x = T[:, :3, 0] - np.einsum("ij,ij->i", T[:, :3, 0], z)[:, None] * z
+        x /= np.linalg.norm(x, axis=1, keepdims=True)
+        T[:, :3, 0], T[:, :3, 1], T[:, :3, 2], T[:, :3, 3] = x, np.cross(z, x), z, tips[lay, o]
+        q = Qf[lay, rungs].copy()
+        out.runs.append(Run(first, last, q, T, tilt[rungs].copy(),
+                            pivot_times(tips[lay, o], q, cfg.travel_speed_mps, max_vel)))
+    out.gaps = _gaps(N, runs, out.layer_reason)
+    return out
+
+
+def pivot_times(points: np.ndarray, q: np.ndarray, travel_speed: float, max_vel: np.ndarray) -> np.ndarray:
+    """Times (L,) along a run: each step takes its length at the travel speed, or longer where the
+    joints must turn faster than PIVOT_SPEED of their limits (the torch pivoting at a corner)."""
+    ds = np.linalg.norm(np.diff(points, axis=0), axis=1) / travel_speed
+    dq = (np.abs(np.diff(q, axis=0)) / (PIVOT_SPEED * np.asarray(max_vel))[None, :]).max(axis=1)
+    return np.concatenate([[0.0], np.cumsum(np.maximum(ds, dq))])
+
+
+def _solve(kin, tips, axes, seed, todo, cfg, xs=None) -> tuple[np.ndarray, np.ndarray]:
+    """Batched IK for the (N,O,S) entries marked ``todo`` from ``seed`` (N,O,S,dof)."""
+    N, O, S = todo.shape
+    Q = np.full((N, O, S, kin.dof), np.nan)
+    ok = np.zeros((N, O, S), dtype=bool)
+    idx = np.nonzero(todo)
+    if len(idx[0]) == 0:
+        return Q, ok
+    q, good = solve_axis_ik_batch(kin, tips[idx[0], idx[1]], axes[idx[0], idx[1]], seed[idx],
+                                  margin=cfg.ik_margin_rad, x_axes=None if xs is None else xs[idx[0], idx[1]])
+    Q[idx], ok[idx] = q, good
+    return Q, ok
+
+
+def cut_spline(times: np.ndarray, q: np.ndarray):
+    """The cut's joint motion through the rungs: a shape-preserving cubic (PCHIP slopes), at rest
+    at both ends (the arm arrives from the approach and leaves for the retract stopped). Between two
+    rungs no joint goes beyond them; a natural cubic overshot by enough to touch the piece at a 5 mm
+    margin."""
+    slopes = PchipInterpolator(times, q, axis=0).derivative()(times)
+    slopes[[0, -1]] = 0.0
+    return CubicHermiteSpline(times, q, slopes, axis=0)
+
+
+def every_degree(Q: np.ndarray) -> np.ndarray:
+    """Indices of the rows of a dense joint path where some joint has moved another degree (ends
+    kept): what a collision check of the motion needs, not every sample of it."""
+    if len(Q) <= 2:
+        return np.arange(len(Q))
+    travel = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(Q, axis=0)).max(axis=1))])
+    step = np.floor(travel / np.radians(1.0))
+    keep = np.ones(len(Q), dtype=bool)
+    keep[1:-1] = step[1:-1] != step[:-2]
+    return np.flatnonzero(keep)
+
+
+def _check_motion(runs, chosen, Qf: np.ndarray, tips: np.ndarray, S: int, cfg: CutPathConfig, max_vel,
+                  is_free: IsFree, known_ok: set) -> list[tuple[int, int, int]]:
+    """Collision check of the motion the cut will execute along each chosen path (the timed
+    spline, a sample per degree of joint travel), in one call; returns the (layer, rung, next
+    rung) edges during which it collides. Runs found free are remembered in ``known_ok``."""
+    samples, owner = [], []
+    for (first, last), rungs in zip(runs, chosen):
+        key = (first, last, rungs.tobytes())
+        if key in known_ok:
+            continue
+        lay = np.arange(first, last + 1)
+        q = Qf[lay, rungs]
+        t = pivot_times(tips[lay, rungs // S], q, cfg.travel_speed_mps, max_vel)
+        tt = np.append(np.arange(0.0, t[-1], cfg.dt_s), t[-1])
+        Q = cut_spline(t, q)(tt)
+        keep = every_degree(Q)
+        seg = np.clip(np.searchsorted(t, tt[keep], side="right") - 1, 0, len(t) - 2)
+        samples.append(Q[keep])
+        owner += [(key, first + int(k), int(rungs[k]), int(rungs[k + 1])) for k in seg]
+    if not samples:
+        return []
+    ok = _free(is_free, np.vstack(samples))
+    bad = {(k, a, b) for (_, k, a, b), good in zip(owner, ok) if not good}
+    hit_runs = {o[0] for o, good in zip(owner, ok) if not good}
+    known_ok.update({o[0] for o in owner} - hit_runs)
+    return sorted(bad)
+
+
+def _free(is_free: IsFree, Q: np.ndarray) -> np.ndarray:
+    out = np.asarray(is_free(Q))
+    if out.shape != (len(Q),):
+        raise ValueError(f"is_free must return shape ({len(Q)},), got {out.shape}")
+    return out.astype(bool)
+
+
+def _split(N: int, usable: np.ndarray, edges) -> list[tuple[int, int]]:
+    """Maximal runs from the start: a run goes on while some rung it can reach joins the next
+    layer; the next run starts again at the layer where one stopped (the torch lifts, the arm
+    changes configuration, the cut goes on from the same point). A run needs two layers at least:
+    one pose is not a cut."""
+    runs = []
+    k = 0
+    while k < N:
+        if not usable[k].any():
+            k += 1
+            continue
+        first, reach = k, usable[k].copy()
+        while k + 1 < N:
+            nxt = (reach[:, None] & edges(k, usable)).any(axis=0)
+            if not nxt.any():
+                break
+            reach, k = nxt, k + 1
+        if k > first:
+            runs.append((first, k))
+            if k == N - 1:
+                break
+        else:
+            k += 1
+    return runs
+
+
+def _cheapest(run: tuple[int, int], usable, edges, Qf, tilt, cfg) -> np.ndarray:
+    """Rung per layer of the cheapest path through the run: Dijkstra on the layered graph from a
+    virtual source before its first layer to a virtual sink after its last."""
+    first, last = run
+    L, R = last - first + 1, usable.shape[1]
+    node_cost = cfg.tilt_cost_weight * tilt ** 2  # (R,)
+    rows, cols, w = [], [], []
+    src, sink = L * R, L * R + 1
+    start = np.flatnonzero(usable[first])
+    rows.append(np.full(len(start), src)), cols.append(start), w.append(node_cost[start] + 1e-9)
+    for i in range(L - 1):  # one sparse block per layer pair
+        k = first + i
+        a, b = np.nonzero(edges(k, usable))
+        dq = Qf[k + 1, b] - Qf[k, a]
+        rows.append(i * R + a), cols.append((i + 1) * R + b)
+        w.append(np.einsum("ij,ij->i", dq, dq) + node_cost[b] + 1e-9)
+    end = np.flatnonzero(usable[last])
+    rows.append((L - 1) * R + end), cols.append(np.full(len(end), sink)), w.append(np.full(len(end), 1e-9))
+    G = coo_matrix((np.concatenate(w), (np.concatenate(rows), np.concatenate(cols))), shape=(L * R + 2,) * 2).tocsr()
+    dist, pred = dijkstra(G, directed=True, indices=src, return_predecessors=True)
+    if not np.isfinite(dist[sink]):
+        raise RuntimeError("a run found by the split has no path: the graph changed under it")
+    path = []
+    node = pred[sink]
+    while node != src:  # one step per layer of the run
+        path.append(node % R)
+        node = pred[node]
+    return np.array(path[::-1], dtype=np.int64)
+
+
+def _gaps(N: int, runs: list[tuple[int, int]], reason: list[str]) -> list[Gap]:
+    """Every stretch between runs (and before the first, after the last), with the most common
+    reason of its uncut layers; layers that have free rungs but no joinable ones are 'singular'."""
+    gaps = []
+    prev = -1
+    for first, last in runs + [(N, N)]:
+        if first == prev:
+            gaps.append(Gap(prev, prev, RECONFIGURE, _WHY[RECONFIGURE]))
+        elif first > prev + 1:
+            seg = [r or SINGULAR for r in reason[prev + 1:first]] or [SINGULAR]
+            why = max(sorted(set(seg)), key=seg.count)
+            counts = ", ".join(f"{seg.count(r)} {r}" for r in sorted(set(seg)))
+            gaps.append(Gap(prev, first, why, f"{_WHY[why]} ({counts} of {len(seg)} poses)"))
+        prev = last
+    return gaps

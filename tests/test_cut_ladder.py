@@ -1,0 +1,169 @@
+"""The cut planner's ladder graph (planners/cutpath/ladder.py), the batched IK under it
+(planners/motion/ik_batch.py) and the accuracy metric against the true line (planners.metrics)."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pybullet_data
+import pytest
+
+from planners.config import CutPathConfig
+from planners.cutpath import CutPath, build_cut_path, plan_cut, torch_kinematics
+from planners.cutpath.ladder import COLLISION, OUT_OF_REACH, RECONFIGURE, plan_ladder, tilt_directions
+from planners.cutpath.geometry import torch_poses
+from planners.metrics import cut_accuracy
+from planners.motion.ik_batch import solve_axis_ik_batch
+from planners.motion.limits import PANDA_MAX_VELOCITY, PANDA_Q_READY
+
+URDF = os.path.join(pybullet_data.getDataPath(), "franka_panda", "panda.urdf")
+CFG = CutPathConfig()
+
+
+@pytest.fixture(scope="module")
+def kin():
+    return torch_kinematics(URDF, CFG)
+
+
+def straight(a, b, z=0.1, spacing=0.005):
+    """A line on the plate z = const: points, upward normals, nominal torch poses, times."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    n = int(round(np.linalg.norm(b - a) / spacing)) + 1
+    xy = a + np.linspace(0, 1, n)[:, None] * (b - a)
+    pts = np.column_stack([xy, np.full(n, z)])
+    normals = np.tile([0.0, 0.0, 1.0], (n, 1))
+    poses = torch_poses(pts, normals, CFG.standoff_m)
+    times = np.arange(n) * spacing / CFG.travel_speed_mps
+    return pts, normals, poses, times
+
+
+# ----------------------------------------------------------------------------- batched IK
+def test_batched_ik_reaches_what_forward_kinematics_says_is_reachable(kin):
+    rng = np.random.default_rng(1)
+    q_true = rng.uniform(kin.lower + 0.1, kin.upper - 0.1, size=(400, 7))
+    T = kin.fk_batch(q_true)
+    seeds = q_true + rng.normal(0.0, 0.15, size=q_true.shape)
+    Q, ok = solve_axis_ik_batch(kin, T[:, :3, 3], T[:, :3, 2], seeds, margin=0.0)
+    assert ok.mean() >= 0.98
+    got = kin.fk_batch(Q[ok])
+    assert np.abs(got[:, :3, 3] - T[ok, :3, 3]).max() <= 1e-4
+    cos = np.einsum("ij,ij->i", got[:, :3, 2], T[ok, :3, 2])
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() <= 0.06
+    assert np.all(Q >= kin.lower - 1e-12) and np.all(Q <= kin.upper + 1e-12)
+
+
+def test_batched_ik_refuses_what_is_out_of_reach(kin):
+    far = np.array([[2.0, 0.0, 0.5], [0.0, 0.0, -1.5]])
+    Q, ok = solve_axis_ik_batch(kin, far, np.tile([0.0, 0.0, -1.0], (2, 1)), np.tile(PANDA_Q_READY, (2, 1)))
+    assert not ok.any()
+    assert np.all(np.isfinite(Q))
+
+
+# ----------------------------------------------------------------------------- tolerances
+def test_tilt_directions_stay_in_the_cone_and_start_at_the_normal():
+    D = tilt_directions(CFG)
+    assert np.allclose(D[0], [0, 0, 1])
+    assert np.allclose(np.linalg.norm(D, axis=1), 1.0)
+    lead = np.degrees(np.arctan2(D[:, 0], D[:, 2]))
+    side = np.degrees(np.arcsin(D[:, 1]))
+    assert np.all(np.abs(lead) <= CFG.lead_lag_max_deg + 1e-6) and np.all(np.abs(side) <= CFG.side_tilt_max_deg + 1e-6)
+    assert np.isclose(np.abs(lead).max(), CFG.lead_lag_max_deg) and np.isclose(np.abs(side).max(), CFG.side_tilt_max_deg)
+    assert len(tilt_directions(CFG.model_copy(update={"tilt_steps": 0}))) == 1
+
+
+# ----------------------------------------------------------------------------- the ladder
+def test_a_reachable_line_is_one_run_held_upright(kin):
+    pts, _, poses, times = straight([0.35, -0.15], [0.55, 0.15])
+    lad = plan_ladder(kin, poses, times, PANDA_Q_READY, CFG, None, PANDA_MAX_VELOCITY)
+    assert [(r.first, r.last) for r in lad.runs] == [(0, len(pts) - 1)]
+    assert lad.gaps == []
+    run = lad.runs[0]
+    assert np.degrees(run.tilt_rad).max() < 1.0, "nothing forces a tilt: the torch stays along the normal"
+    assert np.abs(np.diff(run.q, axis=0)).max() <= CFG.max_joint_jump_rad
+    tip = kin.fk_batch(run.q)
+    np.testing.assert_allclose(tip[:, :3, 3], run.poses[:, :3, 3], atol=2e-4)
+
+
+def test_the_torch_tilts_within_its_cone_to_clear_an_obstacle(kin):
+    """Configurations holding the torch upright are forbidden on the middle third: the ladder
+    leans the torch there instead of giving up, and stays one continuous run."""
+    pts, _, poses, times = straight([0.35, -0.15], [0.55, 0.15])
+    mid = (pts[:, 1] > -0.05) & (pts[:, 1] < 0.05)
+
+    def is_free(Q):
+        T = kin.fk_batch(Q)
+        upright = T[:, 2, 2] < -np.cos(np.radians(3.0))  # torch axis within 3 deg of straight down
+        near = np.abs(T[:, 1, 3]) < 0.05
+        return ~(upright & near)
+
+    lad = plan_ladder(kin, poses, times, PANDA_Q_READY, CFG, is_free, PANDA_MAX_VELOCITY)
+    assert len(lad.runs) == 1 and lad.runs[0].first == 0 and lad.runs[0].last == len(pts) - 1
+    tilt = np.degrees(lad.runs[0].tilt_rad)
+    assert tilt[mid].min() >= 3.0 and tilt.max() <= CFG.lead_lag_max_deg + 1e-6
+    assert np.all(is_free(lad.runs[0].q))
+
+
+def test_a_blocked_stretch_splits_the_cut_and_is_reported_not_the_whole_branch(kin):
+    pts, _, poses, times = straight([0.35, -0.15], [0.55, 0.15])
+    blocked = (pts[:, 1] > -0.02) & (pts[:, 1] < 0.02)
+
+    def is_free(Q):
+        return np.abs(kin.fk_batch(Q)[:, 1, 3]) >= 0.02 + 0.02  # tip and tilt cannot get out: 4 cm band
+
+    lad = plan_ladder(kin, poses, times, PANDA_Q_READY, CFG, is_free, PANDA_MAX_VELOCITY)
+    assert len(lad.runs) == 2
+    gap = [g for g in lad.gaps if g.reason != RECONFIGURE]
+    assert len(gap) == 1 and gap[0].reason == COLLISION
+    uncut = np.zeros(len(pts), bool)
+    uncut[list(gap[0].uncut_layers)] = True
+    assert uncut[blocked].all(), "every blocked pose is in the reported gap"
+    cut = np.zeros(len(pts), bool)
+    for r in lad.runs:
+        cut[r.first:r.last + 1] = True
+    assert cut.sum() >= 0.6 * len(pts)
+    assert not (cut & uncut).any()
+
+
+def test_a_line_running_out_of_reach_is_cut_as_far_as_the_arm_goes(kin):
+    pts, _, poses, times = straight([0.5, 0.0], [1.3, 0.0])
+    lad = plan_ladder(kin, poses, times, PANDA_Q_READY, CFG, None, PANDA_MAX_VELOCITY)
+    assert len(lad.runs) >= 1 and lad.runs[0].first == 0
+    assert lad.gaps[-1].reason == OUT_OF_REACH and lad.gaps[-1].before == len(pts)
+    far = np.linalg.norm(pts[:, :2], axis=1) > 1.1
+    assert not any(far[r.first:r.last + 1].any() for r in lad.runs)
+
+
+def test_plan_cut_reports_what_will_be_cut_and_round_trips(kin, tmp_path):
+    g = np.mgrid[0.3:0.7:0.002, -0.25:0.25:0.002].reshape(2, -1).T
+    surf = np.column_stack([g, np.full(len(g), 0.1)])
+    a, b = np.array([0.4, -0.15]), np.array([0.6, 0.15])
+    t = np.clip((g - a) @ (b - a) / np.dot(b - a, b - a), 0, 1)
+    paint = np.linalg.norm(g - a - t[:, None] * (b - a), axis=1) <= 0.01
+    path = build_cut_path(surf[paint], surf, CFG, viewpoint=np.array([0.5, 0.0, 0.6]))
+    plan_cut(path, kin, PANDA_Q_READY, CFG)
+    assert path.feasible and len(path.branches) == 1 and path.cut_fraction > 0.99
+    assert path.branches[0].tilt_rad is not None
+    path.write(tmp_path)
+    back = CutPath.read(tmp_path)
+    assert back.cut_fraction == pytest.approx(path.cut_fraction, abs=1e-4)
+    assert back.drawing_length_m == pytest.approx(path.drawing_length_m)
+    np.testing.assert_allclose(back.branches[0].tilt_rad, path.branches[0].tilt_rad, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- accuracy
+def test_cut_accuracy_against_a_known_line():
+    line = np.column_stack([np.linspace(0, 0.2, 50), np.zeros(50), np.zeros(50)])
+    shifted = line + [0.0, 0.002, 0.0]
+    a = cut_accuracy([line], [shifted])
+    assert a["cut_coverage"] == 1.0
+    assert a["path_to_line_mean_mm"] == pytest.approx(2.0, abs=0.01)
+    assert a["path_to_line_max_mm"] == pytest.approx(2.0, abs=0.01)
+    half = cut_accuracy([line], [shifted[:25]])
+    assert half["cut_coverage"] == pytest.approx(0.5, abs=0.03)
+    assert half["line_to_path_max_mm"] == pytest.approx(1e3 * (0.2 - line[24, 0]), abs=0.6)
+    assert (half["cuts"], half["strokes"]) == (1, 1)
+    none = cut_accuracy([line], [])
+    assert none["cut_coverage"] == 0.0 and none["path_to_line_mean_mm"] is None
+    with pytest.raises(ValueError, match="no polyline"):
+        cut_accuracy([], [line])
