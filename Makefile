@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/cellctl scan --scene smooth_cylinder --planner gnbv
+	$(BIN)/cellctl scan --scene smooth_cylinder --planner gnbv --dry-run-cut
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
