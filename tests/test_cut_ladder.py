@@ -167,3 +167,26 @@ def test_cut_accuracy_against_a_known_line():
     assert none["cut_coverage"] == 0.0 and none["path_to_line_mean_mm"] is None
     with pytest.raises(ValueError, match="no polyline"):
         cut_accuracy([], [line])
+
+
+# ----------------------------------------------------------------------------- topology
+@pytest.mark.parametrize("segments, strokes", [
+    ([((0.3, -0.15), (0.6, 0.15)), ((0.3, 0.15), (0.6, -0.15))], [0.42, 0.42]),  # a crossing: two straight cuts
+    ([((0.3, 0.0), (0.6, 0.0)), ((0.45, 0.0), (0.45, 0.2))], [0.30, 0.19]),  # a T: the bar in one cut, the stem
+    ([((0.3, -0.15), (0.55, 0.0)), ((0.55, 0.0), (0.3, 0.1))], [0.55]),  # an acute corner: one cut, no spurs
+])
+def test_strokes_go_through_junctions_and_round_corners(segments, strokes):
+    g = np.mgrid[0.25:0.65:0.002, -0.25:0.25:0.002].reshape(2, -1).T
+    surf = np.column_stack([g, np.full(len(g), 0.1)])
+    paint = np.zeros(len(g), bool)
+    for a, b in segments:
+        a, b = np.asarray(a), np.asarray(b)
+        t = np.clip((g - a) @ (b - a) / np.dot(b - a, b - a), 0, 1)
+        paint |= np.linalg.norm(g - a - t[:, None] * (b - a), axis=1) <= 0.01
+    path = build_cut_path(surf[paint], surf, CFG, viewpoint=np.array([0.45, 0.0, 0.6]))
+    lengths = sorted((b.length_m for b in path.branches), reverse=True)
+    assert len(lengths) == len(strokes)
+    np.testing.assert_allclose(lengths, sorted(strokes, reverse=True), atol=0.03)
+    truth = [np.array([[*a, 0.1], [*b, 0.1]]) for a, b in segments]
+    acc = cut_accuracy(truth, [b.points for b in path.branches])
+    assert acc["path_to_line_max_mm"] <= 5.0 and acc["cut_coverage"] >= 0.9, acc

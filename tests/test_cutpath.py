@@ -309,9 +309,9 @@ def test_branched_scene_plans_every_branch(branched, kin):
     t1 = time.perf_counter()
     plan_cut(path, kin, PANDA_Q_READY, CFG)
     t2 = time.perf_counter()
-    assert len(path.branches) >= 4
+    assert len(path.branches) >= 2
     ends = {e.split("+")[0] for b in path.branches for e in (b.start, b.end)}
-    assert {"J0", "J1"} <= ends and len(ends & {f"E{i}" for i in range(4)}) >= 2
+    assert len(ends & {f"E{i}" for i in range(4)}) >= 2  # the two lines are cut through their crossings
     for b in path.branches:  # every run is a joint path through all its poses
         assert b.feasibility == ["ok"] * len(b) and np.isfinite(b.q).all()
         assert np.abs(np.diff(b.q, axis=0)).max() <= CFG.max_joint_jump_rad + 2.0 * np.radians(40)

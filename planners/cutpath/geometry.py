@@ -34,7 +34,87 @@ def resample(p: np.ndarray, spacing: float) -> np.ndarray:
     return np.column_stack([np.interp(t, s, p[:, k]) for k in range(3)])
 
 
-def smooth_resample(poly: np.ndarray, spacing_m: float, smoothing_m: float, closed: bool = False) -> np.ndarray:
+def corners(p: np.ndarray, scale_m: float, min_turn_deg: float) -> np.ndarray:
+    """Indices of the sharp corners of a polyline: points where the direction over ``scale_m``
+    before and after turns by more than ``min_turn_deg`` (the scale sees through the skeleton's
+    voxel staircase), the sharpest point of each such stretch."""
+    if len(p) < 5:
+        return np.zeros(0, dtype=np.int64)
+    s = arc_length(p)
+    back = np.clip(np.searchsorted(s, s - scale_m), 0, len(p) - 1)
+    ahead = np.clip(np.searchsorted(s, s + scale_m), 0, len(p) - 1)
+    d_in, d_out = p - p[back], p[ahead] - p
+    n_in, n_out = np.linalg.norm(d_in, axis=1), np.linalg.norm(d_out, axis=1)
+    ok = (n_in > 0.5 * scale_m) & (n_out > 0.5 * scale_m)
+    cos = np.einsum("ij,ij->i", d_in, d_out) / np.maximum(n_in * n_out, 1e-12)
+    turn = np.where(ok, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))), 0.0)
+    sharp = turn > min_turn_deg
+    if not sharp.any():
+        return np.zeros(0, dtype=np.int64)
+    edges = np.diff(np.concatenate([[0], sharp.astype(np.int8), [0]]))
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return np.array([a + int(np.argmax(turn[a:b])) for a, b in zip(starts, stops)], dtype=np.int64)
+
+
+def smooth_resample(poly: np.ndarray, spacing_m: float, smoothing_m: float, closed: bool = False, *,
+                    corner_scale_m: float = 0.0, corner_deg: float = 180.0,
+                    paint: np.ndarray | None = None) -> np.ndarray:
+    """The polyline split at its sharp corners (``corners``; none when ``corner_scale_m`` is 0), each
+    piece smoothed and resampled on its own (``_smooth_piece``) with the corner points held: a
+    smoothing spline would cut a painted corner, the torch pivots there instead."""
+    p = _checks.points(poly, "poly", 2)
+    cut = corners(p, corner_scale_m, corner_deg) if corner_scale_m > 0 and not closed else np.zeros(0, np.int64)
+    if len(cut) == 0:
+        return _smooth_piece(p, spacing_m, smoothing_m, closed)
+    p = p.copy()
+    for i in cut:  # a few corners
+        p[i] = _corner_point(p, int(i), corner_scale_m, paint)
+    bounds = [0, *cut.tolist(), len(p) - 1]
+    pieces = [_smooth_piece(p[a:b + 1], spacing_m, smoothing_m, False) for a, b in zip(bounds[:-1], bounds[1:])
+              if b > a]
+    return np.vstack([pieces[0]] + [q[1:] for q in pieces[1:]])
+
+
+def _corner_point(p: np.ndarray, i: int, scale_m: float, paint: np.ndarray | None = None) -> np.ndarray:
+    """Where the two sides of a corner meet: thinning rounds a painted corner off (by up to a line
+    width at an acute one), so the corner is put where straight fits of the two sides, from one
+    scale to three scales away, come closest; kept as it is when they do not nearly meet. With the
+    ``paint`` cloud, each side is fitted to the paint along it (a sprayed band is symmetric about
+    its centre line), not to the voxel skeleton."""
+    s = arc_length(p)
+    before = (s < s[i] - scale_m) & (s > s[i] - 3.0 * scale_m)
+    after = (s > s[i] + scale_m) & (s < s[i] + 3.0 * scale_m)
+    if before.sum() < 3 or after.sum() < 3:
+        return p[i]
+    lines = []
+    for m in (before, after):
+        c = p[m].mean(axis=0)
+        d = np.linalg.svd(p[m] - c, full_matrices=False)[2][0]
+        if paint is not None and len(paint):
+            v = paint - c
+            along = v @ d
+            half = 0.5 * float(np.ptp(p[m] @ d))
+            near = (np.abs(along) <= half) & (np.linalg.norm(v - along[:, None] * d, axis=1) <= scale_m)
+            if near.sum() >= 10:
+                c = paint[near].mean(axis=0)
+                d = np.linalg.svd(paint[near] - c, full_matrices=False)[2][0]
+        lines.append((c, d))
+    (c1, d1), (c2, d2) = lines
+    w = c1 - c2
+    a, b, e = d1 @ d1, d1 @ d2, d2 @ d2
+    den = a * e - b * b
+    if den < 1e-9:  # parallel sides: no corner to rebuild
+        return p[i]
+    t1 = (b * (d2 @ w) - e * (d1 @ w)) / den
+    t2 = (a * (d2 @ w) - b * (d1 @ w)) / den
+    q1, q2 = c1 + t1 * d1, c2 + t2 * d2
+    q = 0.5 * (q1 + q2)
+    if np.linalg.norm(q1 - q2) > 0.25 * scale_m or np.linalg.norm(q - p[i]) > 1.5 * scale_m:
+        return p[i]
+    return q
+
+
+def _smooth_piece(poly: np.ndarray, spacing_m: float, smoothing_m: float, closed: bool = False) -> np.ndarray:
     """B-spline through a branch polyline (RMS deviation about `smoothing_m`, ends held), then
     evenly spaced at `spacing_m` of arc length. A closed branch repeats its first point last."""
     p = _checks.points(poly, "poly", 2)

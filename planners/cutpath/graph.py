@@ -376,3 +376,51 @@ def drawing_graph(xyz: np.ndarray, voxel_m: float = 0.005, min_branch_m: float =
     branches = [p for p, _, _ in b.branches.values()]
     ends = [(new_id[a], new_id[c]) for _, a, c in b.branches.values()]
     return DrawingGraph(nodes, [b.kind[k] for k in keys], branches, ends, voxel)
+
+
+def through_junctions(g: DrawingGraph, max_turn_deg: float = 45.0, near_m: float = 0.015, far_m: float = 0.04) -> list[
+        tuple[np.ndarray, int, int]]:
+    """The drawing's strokes: at a junction, the two branches that continue each other (their
+    directions away from it within ``max_turn_deg`` of opposite) are joined into one polyline, so a
+    crossing is cut straight through instead of stopping at it; the straightest pair first, and
+    again at the next junction along. A branch's direction is taken between ``near_m`` and
+    ``far_m`` from the junction: the skeleton bends toward the other branches right at it.
+    Returns (polyline, start node, end node) per stroke."""
+    strokes = [[np.asarray(p, dtype=np.float64), a, b] for p, (a, b) in zip(g.branches, g.ends)]
+    cos_max = -np.cos(np.radians(max_turn_deg))
+
+    def away(p: np.ndarray, at_start: bool) -> np.ndarray | None:
+        q = p if at_start else p[::-1]
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(q, axis=0), axis=1))])
+        i = min(int(np.searchsorted(s, near_m)), len(q) - 1)
+        j = min(int(np.searchsorted(s, far_m)), len(q) - 1)
+        d = q[j] - q[i] if j > i else q[-1] - q[0]
+        n = np.linalg.norm(d)
+        return d / n if n > 1e-9 else None
+
+    for node in [i for i, k in enumerate(g.kinds) if k == JUNCTION]:  # a few junctions
+        while True:
+            inc = [(i, end) for i, (p, a, b) in enumerate(strokes) if p is not None and a != b
+                   for end, n in (("start", a), ("end", b)) if n == node]
+            dirs = [(i, end, away(strokes[i][0], end == "start")) for i, end in inc]
+            dirs = [x for x in dirs if x[2] is not None]
+            best, pair = cos_max, None
+            for u in range(len(dirs)):  # a handful of branches meet at a junction
+                for v in range(u + 1, len(dirs)):
+                    if dirs[u][0] == dirs[v][0]:
+                        continue
+                    c = float(dirs[u][2] @ dirs[v][2])
+                    if c < best:
+                        best, pair = c, (dirs[u], dirs[v])
+            if pair is None:
+                break
+            (i, ei, _), (j, ej, _) = pair
+            p, a, b = strokes[i]
+            q, c, d = strokes[j]
+            if ei == "start":  # make p end at the junction
+                p, a, b = p[::-1], b, a
+            if ej == "end":  # make q start at it
+                q, c, d = q[::-1], d, c
+            strokes[i] = [np.vstack([p, q[1:]]), a, d]
+            strokes[j][0] = None
+    return [(p, a, b) for p, a, b in strokes if p is not None]

@@ -11,7 +11,7 @@ from planners.clouds import Cloud
 from planners.cutpath import _checks
 from planners.cutpath.config import CutPathConfig
 from planners.cutpath.geometry import Surface, on_surface, smooth_resample, torch_poses
-from planners.cutpath.graph import END, JUNCTION, LOOP, drawing_graph
+from planners.cutpath.graph import END, JUNCTION, LOOP, drawing_graph, through_junctions
 from planners.cutpath.ladder import RECONFIGURE, cut_spline, every_degree, plan_ladder, tilt_directions
 from planners.cutpath.pieces import short_pieces
 from planners.cutpath.model import OK, Branch, CutPath, Gap
@@ -73,12 +73,12 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | No
         label.append({JUNCTION: "J", END: "E", LOOP: "L"}[kind] + str(counters[kind]))
         counters[kind] += 1
     branches = []
-    for i, poly in enumerate(g.branches):  # a handful of branches
-        closed = g.closed(i)
-        pts = smooth_resample(poly, cfg.spacing_m, cfg.smoothing_voxels * cfg.voxel_m, closed)
+    for poly, a, b in through_junctions(g):  # a handful of strokes: a crossing is cut straight through
+        closed = a == b and g.kinds[a] == LOOP
+        pts = smooth_resample(poly, cfg.spacing_m, cfg.smoothing_voxels * cfg.voxel_m, closed,
+                              corner_scale_m=cfg.corner_scale_m, corner_deg=cfg.corner_deg, paint=d_xyz)
         pts, normals = on_surface(pts, surf, cfg.spacing_m)
         poses = torch_poses(pts, normals, cfg.standoff_m, closed)
-        a, b = g.ends[i]
         branches.append(Branch(pts, normals, poses, np.full(len(pts), cfg.travel_speed_mps), label[a], label[b], closed))
     pieces, ignored = short_pieces(d_xyz, g.branches, surf, voxel_m=cfg.voxel_m, spacing_m=cfg.spacing_m,
                                    bridge_max_m=cfg.bridge_max_m, min_piece_m=cfg.min_piece_m)
