@@ -316,7 +316,7 @@ def run_load(spec: LoadSpec = LoadSpec(), workdir: str | Path | None = None, *, 
             drained = events.wait_ended(set(accepted), max(0.0, deadline - time.monotonic()))
             t_drained = time.monotonic()
             stop_watch.set()
-            poller.join(30)
+            poller.join(300)  # a liveness bound: its lanes finish the ticks already sent, each query within its timeout
             sampler.join(5)
             vm = proc_status(pid)
             cpu_s = proc_cpu_s(pid) - cpu0

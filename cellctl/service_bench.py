@@ -68,7 +68,10 @@ class ServiceProcess:
         self.log = self.workdir / "service.log"
         self.startup_s: float | None = None
 
-    def start(self, timeout_s: float = 30.0) -> ServiceProcess:
+    # The default waits are liveness bounds (they fail on a hang, not on a loaded machine): start-up takes
+    # a few seconds of imports, a reply milliseconds (~0.3 s while a scan holds the GIL), an exit under a
+    # second (up to service.shutdown_grace_s, 30 s, while a job finishes its step).
+    def start(self, timeout_s: float = 120.0) -> ServiceProcess:
         from cellctl.client import CellClient, CellUnreachable, NoReply
 
         t0 = time.monotonic()
@@ -93,12 +96,12 @@ class ServiceProcess:
             self.kill()
             raise
 
-    def client(self, timeout_s: float = 5.0):
+    def client(self, timeout_s: float = 30.0):
         from cellctl.client import CellClient
 
         return CellClient(self.cell_id, [self.endpoint], timeout_s=timeout_s)
 
-    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 20.0) -> tuple[int, float]:
+    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 120.0) -> tuple[int, float]:
         """Send ``sig``; (exit status, seconds to exit). Killed if it does not exit in time."""
         t0 = time.monotonic()
         self.proc.send_signal(sig)

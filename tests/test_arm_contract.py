@@ -37,8 +37,8 @@ def test_a_job_that_fails_on_an_arm_error_leaves_the_arm_stopped_and_recovered(a
     h.go_to(HOME_Q)
     th, out = run_in_thread(arm.execute, smooth_trajectory(HOME_Q, HOME_Q + np.array([0.3, 0, 0, 0.2, 0, 0, 0]), 4.0))
     wait_until_moving(arm, HOME_Q)
-    h.fault()
-    th.join(15.0)
+    h.fault(lambda: not th.is_alive())
+    th.join(60.0)  # a liveness bound
     assert not th.is_alive() and isinstance(out[0], TrajectoryError), out
     stopped, notes = stop_and_recover(arm)
     assert stopped

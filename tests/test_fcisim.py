@@ -12,6 +12,7 @@ import signal
 import time
 from pathlib import Path
 
+import pytest
 import yaml
 
 from cellctl.scan import REACH_TOL_DEG, REACH_TOL_M
@@ -60,22 +61,27 @@ def pure_twin_coverage(tmp_path: Path) -> tuple[float, float]:
     return result.coverage_percent, time.monotonic() - t0
 
 
+@pytest.mark.timeout(1500)  # ~30 s idle, ~100 s beside two busy processes: the bounds below are the liveness bounds
 def test_a_scan_job_runs_through_franky_on_franky_sim(tmp_path):
     doc = yaml.safe_load((CONFIG_DIR / "cell.fcisim.yaml").read_text())
     doc.pop("service")  # the bench helper puts the service on a free loopback port and a temp data dir
+    # The adapter settles on each view until close or at rest; settle_timeout_s is only its wall-clock cap,
+    # and franky-sim (a child process) runs slower than the wall clock on a loaded machine: the cap at its
+    # maximum, so the reach asserted below never depends on the machine's load.
+    doc["arm"]["settle_timeout_s"] = 10.0
     svc = ServiceProcess(tmp_path / "cell", cell_id=doc.pop("cell_id"), cell=doc)
     t0 = time.monotonic()
-    svc.start(timeout_s=120)
+    svc.start(timeout_s=180)  # liveness bounds from here on: they fail on a hang, not on a loaded machine
     try:
         sims = [p for p, cmd in children(svc.proc.pid).items() if "cellctl.fcisim" in cmd]
         assert len(sims) == 1, children(svc.proc.pid)
-        with svc.client(timeout_s=10) as c:
+        with svc.client(timeout_s=30) as c:
             st = c.status()
             assert st.mode == "fcisim" and st.ready and st.arm_ready and st.camera_ready, st
             assert st.not_ready_reason is None and "franky-sim" in st.devices, st
             t_job = time.monotonic()
             job_id = c.submit(REQUEST).job_id
-            rec = c.wait(job_id, 600)
+            rec = c.wait(job_id, 900)  # the job takes ~25 s idle
             job_s = time.monotonic() - t_job
             assert c.status().ready  # the arm answers again after the job let it go
         assert rec.state == "done", (rec.error, svc.log.read_text()[-3000:])

@@ -8,16 +8,18 @@ from __future__ import annotations
 
 import logging
 import math
+import sys
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from arm_contract import (HAND_EYE, HOME_Q, franky_config, franky_sim_server, free_loopback_address, path_distance,
-                          planned, run_in_thread, smooth_trajectory, wait_until_moving)
+from arm_contract import (HAND_EYE, HOME_Q, franky_config, franky_sim_server, franky_sim_still, free_loopback_address,
+                          path_distance, planned, run_in_thread, smooth_trajectory, wait_until_moving)
 from drivers.interfaces import DeviceError, JointTrajectory, TrajectoryError
 from drivers.panda import FrankaArm, FrankaConfig, SafetyChecker, probe
 from drivers.panda.config import ModelLimits
@@ -171,10 +173,26 @@ def test_full_speed_ruckig_plans_are_not_refused(model):
 
 
 def test_checks_are_vectorized(fr3_checker):
-    tr = smooth_trajectory(HOME_Q, HOME_Q + 0.3, 30.0, rate=1000.0)  # 30k samples
-    t0 = time.perf_counter()
-    fr3_checker.check(tr)
-    assert time.perf_counter() - t0 < 1.0
+    """The checks' Python work does not grow with the samples: 3k and 30k samples make the same
+    function calls (Python and C), so the samples are handled inside numpy, not by a Python loop.
+    Counted, not timed: a wall-clock bound would depend on the machine's load."""
+    def calls(tr: JointTrajectory) -> Counter:
+        seen: Counter = Counter()
+
+        def profile(_frame, event, _arg):
+            seen[event] += 1
+
+        sys.setprofile(profile)
+        try:
+            fr3_checker.check(tr)
+        finally:
+            sys.setprofile(None)
+        return seen
+
+    short = calls(smooth_trajectory(HOME_Q, HOME_Q + 0.3, 3.0, rate=1000.0))  # 3k samples
+    long = calls(smooth_trajectory(HOME_Q, HOME_Q + 0.3, 30.0, rate=1000.0))  # 30k samples
+    assert short["call"] > 0 and short["c_call"] > 0
+    assert long == short, (short, long)
 
 
 def test_batched_kinematics_equals_pinocchio(fr3_checker):
@@ -201,21 +219,30 @@ def test_refusal_needs_no_robot():
 
 # ----------------------------------------------------------------------------- without a robot
 def test_connect_refused_fails_fast_with_fci_hint():
+    """A refusal fails on the refusal, not after connect_timeout_s (set to its maximum, 60 s, here):
+    the bound below is far above the refusal's milliseconds and far below the timeout."""
     host = free_loopback_address()
     t0 = time.monotonic()
     with pytest.raises(DeviceError) as info:
-        FrankaArm(franky_config(host))
-    assert time.monotonic() - t0 < 2.0
+        FrankaArm(franky_config(host, connect_timeout_s=60.0))
+    assert time.monotonic() - t0 < 30.0, "waited for connect_timeout_s instead of failing on the refusal"
     msg = str(info.value)
     assert host in msg and "refused" in msg and "FCI is not active" in msg
 
 
 def test_connect_unreachable_fails_within_the_timeout():
+    """Bounded by connect_timeout_s, not by the OS's TCP connect timeout (~2 min of SYN retries) nor
+    libfranka's 60 s handshake: the bound below is a liveness bound far from both, and far above the
+    0.5 s timeout however loaded the machine is. Where the network answers at once (a proxy, no route)
+    the message says so instead of naming the timeout."""
     t0 = time.monotonic()
     with pytest.raises(DeviceError, match="unreachable") as info:
         FrankaArm(franky_config(UNROUTABLE, connect_timeout_s=0.5))
-    assert time.monotonic() - t0 < 0.5 + 1.5, "not bounded by connect_timeout_s"
-    assert UNROUTABLE in str(info.value)
+    assert time.monotonic() - t0 < 30.0, "not bounded by connect_timeout_s"
+    msg = str(info.value)
+    assert UNROUTABLE in msg
+    if "no answer" in msg:  # it timed out: on the configured timeout
+        assert "within 0.5 s" in msg, msg
 
 
 def test_probe_reports_not_ready_instead_of_raising():
@@ -236,7 +263,8 @@ def sim_arm():
             arm.close()
 
 
-def _home(arm: FrankaArm) -> None:
+def _home(arm: FrankaArm, robot) -> None:
+    """At HOME_Q and at rest."""
     if arm._robot is None:
         arm.connect()
     if arm.needs_recovery:
@@ -244,43 +272,65 @@ def _home(arm: FrankaArm) -> None:
     q = arm.joint_positions()
     if np.max(np.abs(q - HOME_Q)) > 1e-3:
         arm.execute(planned(arm, [q, HOME_Q], speed=0.6))
-    time.sleep(0.2)
+    _at_rest(robot)
+
+
+def _at_rest(robot) -> None:
+    """franky-sim's controller has closed its lag (in simulated time, however loaded the machine)."""
+    franky_sim_still(robot)
 
 
 @pytest.mark.parametrize("name", list(REFUSALS))
 def test_refusals_against_franky_sim_move_nothing(sim_arm, name):
     arm, robot, counter = sim_arm
-    _home(arm)
+    _home(arm, robot)
     make, fragments = REFUSALS[name]
     truth, sent, seen = np.array(robot.inner_state.q), arm.motions_sent, counter.count
     with pytest.raises(TrajectoryError, match="^" + fragments[0]):
         arm.execute(make())
-    time.sleep(0.05)
+    _at_rest(robot)  # the simulator ran on (and read any command sent) before "nothing moved" is judged
     assert counter.count == seen, "a Move command reached the simulated robot"
     assert arm.motions_sent == sent
     assert np.max(np.abs(np.array(robot.inner_state.q) - truth)) < 5e-4  # franky-sim's holding jitter ~1e-4
     assert arm.events[-1]["kind"] == "refused" and arm.events[-1]["message"].startswith(fragments[0])
 
 
+def _time_scale(times: np.ndarray, desired: np.ndarray, tr: JointTrajectory) -> float:
+    """How many times slower than planned franky commanded the motion: the slope of robot time over
+    plan time at equal progress along the path (the joints move monotonically from the first sample
+    to the last), fitted over the middle 80 % of the way. Each polled (time, commanded joints) pair is
+    one robot state, so neither how often the polls came nor when the motion started (both depend on
+    the machine's load) enters; the last poll's time after the end, which does, is not used."""
+    a, d = tr.positions[0], tr.positions[-1] - tr.positions[0]
+    plan = (tr.positions - a) @ d / (d @ d)
+    got = (np.asarray(desired) - a) @ d / (d @ d)
+    keep = (plan > 0.05) & (plan < 0.95)
+    assert np.all(np.diff(plan[keep]) > 0)
+    mid = (got > 0.1) & (got < 0.9)
+    assert mid.sum() >= 10, mid.sum()
+    tau = np.interp(got[mid], plan[keep], tr.times[keep])
+    return float(np.polyfit(tau, np.asarray(times)[mid], 1)[0])
+
+
 def test_speed_scaling(sim_arm):
     """relative_dynamics_factor scales franky's limits: a plan faster than the scaled limits is
     stretched in time along its waypoints, and still ends on target."""
-    arm, _, _ = sim_arm
-    _home(arm)
+    arm, robot, _ = sim_arm
+    _home(arm, robot)
     q1 = HOME_Q + np.array([0.5, 0.3, 0.0, 0.3, 0.0, 0.0, 0.4])
-    durations, paths = {}, {}
+    scales, paths = {}, {}
     try:
         for factor, (a, b) in ((1.0, (HOME_Q, q1)), (0.2, (q1, HOME_Q))):
             arm.relative_dynamics_factor = factor
             tr = planned(arm, [a, b], speed=0.5)
             arm.execute(tr)
-            durations[factor] = arm.last_motion["duration_s"] / arm.last_motion["planned_s"]
+            scales[factor] = _time_scale(arm.last_motion_times, arm.last_motion_desired, tr)
             paths[factor] = path_distance(arm.last_motion_actual, tr.positions)
             assert np.max(np.abs(arm.joint_positions() - b)) < 5e-3
     finally:
         arm.relative_dynamics_factor = 1.0
-    assert durations[1.0] < 1.15, durations  # on our timing
-    assert durations[0.2] > 2.0, durations  # slowed down by the factor (0.5 / 0.2 = 2.5 on velocity)
+    assert scales[1.0] < 1.15, scales  # on our timing
+    assert scales[0.2] > 2.0, scales  # slowed down by the factor (0.5 / 0.2 = 2.5 on velocity)
     assert max(paths.values()) < 0.03, paths  # along our path both times
 
 
@@ -292,8 +342,7 @@ def test_collision_thresholds_reach_the_robot(sim_arm, caplog):
     arm.config.collision.lower_torque_nm = lower
     try:
         with caplog.at_level(logging.DEBUG, logger="franky_sim.franka_robot_protocol"):
-            arm.configure()
-            time.sleep(0.05)
+            arm.configure()  # returns on the controller's acknowledgment, which it sends after logging
         lines = [r.getMessage() for r in caplog.records]
         assert any(m == f"Lower torque thresholds acc: {lower}" for m in lines), lines
         assert any(m == f"Upper torque thresholds acc: {arm.config.collision.upper_torque_nm}" for m in lines), lines
@@ -305,11 +354,11 @@ def test_collision_thresholds_reach_the_robot(sim_arm, caplog):
 def test_our_kinematics_agree_with_the_robot(sim_arm):
     """The flange from the URDF the safety checks use equals the robot's own O_T_EE * F_T_EE^-1
     (FR3 link8; panda_hand is link8 turned -45 deg about z), also away from home."""
-    arm, _, _ = sim_arm
-    _home(arm)
+    arm, robot, _ = sim_arm
+    _home(arm, robot)
     q1 = HOME_Q + np.array([0.6, 0.3, -0.4, 0.5, 0.7, -0.3, 0.5])
     arm.execute(planned(arm, [HOME_Q, q1], speed=0.6))
-    time.sleep(0.2)
+    _at_rest(robot)
     s = arm.robot.state
     Rz = np.eye(4)
     Rz[:2, :2] = [[math.cos(-math.pi / 4), -math.sin(-math.pi / 4)], [math.sin(-math.pi / 4), math.cos(-math.pi / 4)]]
@@ -324,16 +373,16 @@ def test_our_kinematics_agree_with_the_robot(sim_arm):
 def test_controller_abort_is_recorded_and_recovered(sim_arm):
     """An abort from the controller side (libfranka's stop from another thread: the ControlException
     path a reflex takes) leaves the arm refusing motions until recover(), which the events record."""
-    arm, _, counter = sim_arm
-    _home(arm)
+    arm, robot, counter = sim_arm
+    _home(arm, robot)
     seen: list[dict] = []
     arm.on_event = seen.append
     try:
         th, out = run_in_thread(arm.execute, joint_move(0, 0.4, 3.0))
         wait_until_moving(arm, HOME_Q)
         arm.robot.stop()
-        th.join(10.0)
-        assert isinstance(out[0], TrajectoryError) and "aborted by the robot" in str(out[0])
+        th.join(60.0)  # a liveness bound
+        assert not th.is_alive() and isinstance(out[0], TrajectoryError) and "aborted by the robot" in str(out[0])
         assert arm.needs_recovery and seen[-1]["kind"] == "control_error"
         moves = counter.count
         q = arm.joint_positions()
@@ -365,24 +414,31 @@ def test_probe_ready_and_model_mismatch(sim_arm):
 def test_concurrent_reads_while_executing(sim_arm):
     """joint_positions()/camera_pose() from other threads while execute() runs (libfranka itself
     refuses concurrent reads: the owner thread serializes them)."""
-    arm, _, _ = sim_arm
-    _home(arm)
+    arm, robot, _ = sim_arm
+    _home(arm, robot)
     th, out = run_in_thread(arm.execute, joint_move(0, 0.3, 1.5))
-    reads, errors = [], []
+    reads: list[list[np.ndarray]] = [[], []]
+    errors = []
 
-    def reader():
+    def reader(mine: list):
         try:
             while th.is_alive():
-                reads.append(arm.joint_positions())
+                mine.append(arm.joint_positions())
                 arm.camera_pose()
         except Exception as e:  # noqa: BLE001
             errors.append(e)
 
-    readers = [threading.Thread(target=reader) for _ in range(2)]
+    readers = [threading.Thread(target=reader, args=(mine,)) for mine in reads]
     for r in readers:
         r.start()
-    th.join(15.0)
+    th.join(60.0)  # liveness bounds: the motion takes 1.5 s
     for r in readers:
-        r.join(5.0)
-    assert not errors and isinstance(out[0], float) and len(reads) > 10
+        r.join(60.0)
+    assert not th.is_alive() and not any(r.is_alive() for r in readers)
+    assert not errors and isinstance(out[0], float)
+    # each reader was answered while the arm was on its way (not only before or after the motion); how
+    # many reads fit in the motion depends on the machine's load, so that is not counted
+    way = [[(q[0] - HOME_Q[0]) / 0.3 for q in mine] for mine in reads]
+    assert all(any(0.05 < w < 0.95 for w in ws) for ws in way), \
+        [(len(ws), min(ws, default=None), max(ws, default=None)) for ws in way]
     arm.execute(smooth_trajectory(arm.joint_positions(), HOME_Q, 1.5))

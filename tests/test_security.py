@@ -29,6 +29,13 @@ from configs import CONFIG_DIR
 SCENES = CONFIG_DIR / "scenes"
 BAD_SUBMIT = json.dumps({"scene": "no_such_scene"}).encode()  # refused at once, nothing queued
 NO_JOB = "20250101T000000Z-abcdef"
+# Liveness bounds: they fail on a hang, never because the machine is loaded. A reply the test needs
+# comes in milliseconds (~0.3 s while the cell's scan holds the GIL); a query that must get no reply
+# waits out its whole timeout, so that one is shorter, yet far longer than any allowed reply takes.
+REPLY_S = 30.0
+NO_REPLY_S = 5.0
+JOB_S = 300.0  # a scan reaches its first view, or ends after a cancel (idle: seconds)
+UP_S = 120.0  # processes come up (a few seconds of imports) or exit (under a second)
 
 
 def session(endpoint: str, user: str, password: str) -> zenoh.Session:
@@ -60,23 +67,51 @@ def yard(router, tmp_path_factory):  # noqa: F811 - the imported fixture
         cell = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "serve", "--config", str(cfg)], cwd=ROOT,
                                 stdout=log, stderr=subprocess.STDOUT)
     try:
-        with CellClient("sim-1", [endpoint], timeout_s=3, zenoh_config_file=_creds(d, "operator", pw["operator"])) as c:
-            deadline = time.monotonic() + 60
+        with CellClient("sim-1", [endpoint], timeout_s=REPLY_S,
+                        zenoh_config_file=_creds(d, "operator", pw["operator"])) as c:
+            deadline = time.monotonic() + UP_S
             while not c.alive(0.5):
                 assert cell.poll() is None and time.monotonic() < deadline, (d / "cell.log").read_text()[-2000:]
         yield endpoint, pw, rproc, cell
     finally:
         cell.send_signal(signal.SIGTERM)
         try:
-            assert cell.wait(timeout=20) == 0
+            assert cell.wait(timeout=UP_S) == 0
         except subprocess.TimeoutExpired:
             cell.kill()
-            pytest.fail("the cell did not exit within 20 s of SIGTERM")
+            pytest.fail(f"the cell did not exit within {UP_S:g} s of SIGTERM")
 
 
 def _alive(yard) -> None:
     _, _, rproc, cell = yard
     assert rproc.poll() is None and cell.poll() is None
+
+
+def _until(condition, what: str, timeout_s: float = UP_S, period_s: float = 0.05) -> None:
+    """Poll ``condition`` until it holds: instead of a sleep that hopes something has happened by then."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, what
+        time.sleep(period_s)
+
+
+def _through_the_router(sender: zenoh.Session, receiver: zenoh.Session, user: str) -> None:
+    """Until something ``sender`` (a cell's credentials) publishes after this call has come through the
+    router to ``receiver``: one session's messages reach the router in order, so the router has handled
+    whatever ``sender`` sent before (e.g. a declaration the access control denies, which nothing else shows)."""
+    key = f"cell/{user.removeprefix('cell-')}/jobs/{NO_JOB}/events"
+    marks: list[bytes] = []
+    sub = receiver.declare_subscriber(key, lambda sample: marks.append(sample.payload.to_bytes()))
+    try:
+        _until(lambda: sender.put(key, b"mark") or bool(marks), f"nothing {user} published came through",
+               period_s=0.2)
+    finally:
+        sub.undeclare()
+
+
+def _serves(s: zenoh.Session, key: str, payload: bytes | None = None) -> list[bytes]:
+    """What a query through the router gets back, right now (a declaration still on its way: nothing)."""
+    return [r.ok.payload.to_bytes() for r in answers(s.get(key, payload=payload, timeout=REPLY_S)) if r.ok is not None]
 
 
 # --- the router's own limits -----------------------------------------------------------------------
@@ -110,19 +145,23 @@ def test_an_oversized_query_is_dropped_by_the_router_and_everyone_carries_on(yar
             q.reply(q.key_expr, str(n).encode())
 
         probe_q = probe.declare_queryable("cell/sim-2/status", answer)
-        time.sleep(0.5)  # the declaration reaches the router
+        _until(lambda: _serves(op, "cell/sim-2/status") == [b"0"], "the probe's declaration never reached the router")
+        seen.clear()
         half = MAX_MESSAGE_BYTES // 2
-        r = answers(op.get("cell/sim-2/status", payload=b"x" * half, timeout=10))
+        r = answers(op.get("cell/sim-2/status", payload=b"x" * half, timeout=REPLY_S))
         assert [x.ok.payload.to_bytes() for x in r] == [str(half).encode()] and seen == [half]
         big = b"{" * (2 * MAX_MESSAGE_BYTES)
         t0 = time.monotonic()
-        assert answers(op.get("cell/sim-2/status", payload=big, timeout=3)) == []
-        assert time.monotonic() - t0 >= 2.5 and seen == [half]  # timed out: never forwarded
-        assert answers(op.get("cell/sim-1/jobs/submit", payload=big, timeout=3)) == []
-        assert answers(op.get("cell/sim-1/status", payload=big, timeout=3)) == []
-        r = answers(op.get("cell/sim-1/status", timeout=5))  # the same session, the router and the cell carry on
+        assert answers(op.get("cell/sim-2/status", payload=big, timeout=NO_REPLY_S)) == []
+        # not even an error came back early: the query waited out its timeout (a lower bound no load can
+        # break), and the probe never saw it
+        assert time.monotonic() - t0 >= NO_REPLY_S - 0.5 and seen == [half]
+        assert answers(op.get("cell/sim-1/jobs/submit", payload=big, timeout=NO_REPLY_S)) == []
+        assert answers(op.get("cell/sim-1/status", payload=big, timeout=NO_REPLY_S)) == []
+        # the same session, the router and the cell carry on
+        r = answers(op.get("cell/sim-1/status", timeout=REPLY_S))
         assert len(r) == 1 and CellStatus.model_validate_json(r[0].ok.payload.to_bytes()).cell_id == "sim-1"
-        r = answers(op.get("cell/sim-2/status", payload=b"{}", timeout=5))
+        r = answers(op.get("cell/sim-2/status", payload=b"{}", timeout=REPLY_S))
         assert [x.ok.payload.to_bytes() for x in r] == [b"2"] and seen == [half, 2]
         probe_q.undeclare()
     finally:
@@ -131,25 +170,63 @@ def test_an_oversized_query_is_dropped_by_the_router_and_everyone_carries_on(yar
     _alive(yard)
 
 
+def _burst(s: zenoh.Session, key: str, payload: bytes | None, n: int, timeout_s: float,
+           meanwhile=lambda: None) -> list[tuple[float, list]]:
+    """``n`` queries sent back to back, then ``meanwhile()``: for each query, (time sent, [(time received,
+    code or b"ok")] of its answers), once every one of them has ended (answered, or timed out: dropped)."""
+    results: list[tuple[float, list]] = []
+    ended = [threading.Event() for _ in range(n)]
+
+    def on_reply(got: list, r) -> None:
+        if r.ok is not None:
+            got.append((time.monotonic(), b"ok"))
+        elif r.err.payload.to_bytes() != b"Timeout":  # Zenoh's own end of an unanswered query: no answer
+            got.append((time.monotonic(), ErrorReply.model_validate_json(r.err.payload.to_bytes()).code))
+
+    for i in range(n):
+        got: list = []
+        results.append((time.monotonic(), got))
+        s.get(key, zenoh.handlers.Callback(lambda r, got=got: on_reply(got, r), ended[i].set), payload=payload,
+              timeout=timeout_s)
+    meanwhile()
+    for e in ended:
+        assert e.wait(timeout_s + UP_S), "a query never ended"
+    return results
+
+
 def test_commands_are_rate_limited_per_session_reads_are_not(yard):
-    """Zenoh downsampling in the router: a session's second submit (or cancel) within 0.2 s is dropped
-    (no reply); another session is not held up by it, and the next one after 0.2 s is answered."""
+    """Zenoh downsampling in the router: a session's commands (submit, cancel) pass at most one per 0.2 s,
+    the others are dropped (no reply); another session is not held up by it, and a command 0.2 s after the
+    last one that passed is answered. Judged by what the clock cannot blur on a loaded machine:
+    - of a burst sent back to back, not all pass (the router would have had to take 0.2 s per command
+      to read them) and the first does;
+    - two commands that both passed were read by the router 0.2 s apart or more, and it reads one before
+      answering it, so the later one's answer came at least 0.2 s after the earlier one was sent;
+    - the command after the pause is sent 0.3 s after the last answer came back: more than 0.2 s after the
+      router read that command, however long the answer took."""
     endpoint, pw, _, _ = yard
     op, other = (session(endpoint, "operator", pw["operator"]) for _ in range(2))
+    n = 10
     try:
-        def codes(replies) -> list[str]:
-            return [ErrorReply.model_validate_json(r.err.payload.to_bytes()).code for r in replies]
-
         for key, code in [("cell/sim-1/jobs/submit", "invalid_request"),
                           (f"cell/sim-1/jobs/{NO_JOB}/cancel", "not_found")]:
-            t0 = time.monotonic()
-            first, second = (op.get(key, payload=BAD_SUBMIT if "submit" in key else None, timeout=2) for _ in "12")
-            elsewhere = other.get(key, payload=BAD_SUBMIT if "submit" in key else None, timeout=5)
-            assert codes(answers(first)) == [code] and codes(answers(elsewhere)) == [code]
-            assert answers(second) == []  # dropped by the router: the querier times out
-            time.sleep(max(0.0, t0 + 0.3 - time.monotonic()))
-            assert codes(answers(op.get(key, payload=BAD_SUBMIT if "submit" in key else None, timeout=5))) == [code]
-        reads = [op.get("cell/sim-1/status", timeout=5) for _ in range(5)]  # a burst of reads: all answered
+            payload = BAD_SUBMIT if "submit" in key else None
+            elsewhere = []  # another session's command, sent right after the burst: not held up by it
+
+            def meanwhile(key=key, payload=payload):
+                elsewhere.extend(answers(other.get(key, payload=payload, timeout=REPLY_S)))
+
+            burst = _burst(op, key, payload, n, 10.0, meanwhile)
+            passed = [(sent, got) for sent, got in burst if got]
+            assert all([c for _, c in got] == [code] for _, got in passed), burst
+            assert burst[0][1] and 1 <= len(passed) < n, [len(got) for _, got in burst]
+            for (sent, _), (_, got) in zip(passed, passed[1:]):
+                assert got[0][0] - sent >= 0.2, burst
+            assert [ErrorReply.model_validate_json(r.err.payload.to_bytes()).code for r in elsewhere] == [code]
+            time.sleep(max(0.0, max(got[0][0] for _, got in passed) + 0.3 - time.monotonic()))
+            after = answers(op.get(key, payload=payload, timeout=REPLY_S))
+            assert [ErrorReply.model_validate_json(r.err.payload.to_bytes()).code for r in after] == [code]
+        reads = [op.get("cell/sim-1/status", timeout=REPLY_S) for _ in range(5)]  # a burst of reads: all answered
         assert all(len(answers(h)) == 1 for h in reads)
     finally:
         op.close()
@@ -170,14 +247,14 @@ def test_an_operator_submits_and_cancels_through_the_router(yard, tmp_path):
             started.set()
 
     creds = _creds(tmp_path, "operator", pw["operator"])
-    with CellClient("sim-1", [endpoint], timeout_s=5, zenoh_config_file=creds) as c:
+    with CellClient("sim-1", [endpoint], timeout_s=REPLY_S, zenoh_config_file=creds) as c:
         job = c.submit({"scene": "smooth_cylinder", "max_steps": 12, "noise": False}, on_event=on).job_id
-        assert started.wait(120), events
+        assert started.wait(JOB_S), events
         assert c.cancel(job, reason="security test").state == "cancelling"
-        rec = c.wait(job, 60)
+        rec = c.wait(job, JOB_S)
         assert rec.state == "cancelled" and rec.transitions[-2].note == "cancel requested: security test"
         assert events[0] == "queued" and "scanning" in events
-        admin = answers(c.session.get("@/**", timeout=2))  # only the operator's own session answers
+        admin = answers(c.session.get("@/**", timeout=NO_REPLY_S))  # only the operator's own session answers
         assert admin and all(str(r.ok.key_expr).startswith(f"@/{c.session.zid()}/") for r in admin)
     _alive(yard)
 
@@ -191,12 +268,12 @@ def test_a_cell_can_only_serve_its_own_keys(yard):
     asked: list[str] = []
     try:
         mine = own.declare_queryable("cell/sim-2/status", lambda q: q.reply(q.key_expr, b"sim-2"))
-        time.sleep(0.5)
-        assert [r.ok.payload.to_bytes() for r in answers(op.get("cell/sim-2/status", timeout=3))] == [b"sim-2"]
-        assert answers(imp.get("cell/sim-2/status", timeout=1.5)) == []  # not even its own: a cell only serves
-        assert answers(imp.get("cell/sim-1/jobs/submit", payload=BAD_SUBMIT, timeout=1.5)) == []
-        assert answers(imp.get(f"cell/sim-1/jobs/{NO_JOB}/cancel", timeout=1.5)) == []
-        assert answers(imp.get("cell/sim-1/status", timeout=1.5)) == []
+        _until(lambda: _serves(op, "cell/sim-2/status") == [b"sim-2"], "cell-sim-2's own queryable never reached "
+                                                                       "the operator")
+        assert answers(imp.get("cell/sim-2/status", timeout=NO_REPLY_S)) == []  # not even its own: a cell only serves
+        assert answers(imp.get("cell/sim-1/jobs/submit", payload=BAD_SUBMIT, timeout=NO_REPLY_S)) == []
+        assert answers(imp.get(f"cell/sim-1/jobs/{NO_JOB}/cancel", timeout=NO_REPLY_S)) == []
+        assert answers(imp.get("cell/sim-1/status", timeout=NO_REPLY_S)) == []
         mine.undeclare()
 
         def impostor(q: zenoh.Query) -> None:
@@ -204,10 +281,10 @@ def test_a_cell_can_only_serve_its_own_keys(yard):
             q.reply(q.key_expr, b"impostor")
 
         fake = imp.declare_queryable("cell/sim-1/**", impostor)
-        time.sleep(0.5)
+        _through_the_router(imp, op, "cell-sim-2")  # the router has handled (and denied) that declaration
         for key, payload in [("cell/sim-1/status", None), ("cell/sim-1/jobs/submit", BAD_SUBMIT)]:
             replies = answers(op.get(key, payload=payload, target=zenoh.QueryTarget.ALL,
-                                     consolidation=zenoh.ConsolidationMode.NONE, timeout=3))
+                                     consolidation=zenoh.ConsolidationMode.NONE, timeout=REPLY_S))
             assert len(replies) == 1, [(r.ok or r.err).payload.to_bytes()[:80] for r in replies]
             r = replies[0]
             assert b"impostor" not in (r.ok or r.err).payload.to_bytes()
@@ -231,18 +308,27 @@ def test_only_a_cell_publishes_its_own_events(yard):
             with lock:
                 got.append((str(sample.key_expr), sample.payload.to_bytes()))
 
+        def arrived(payload: bytes) -> bool:
+            with lock:
+                return any(p == payload for _, p in got)
+
+        own = f"cell/sim-2/jobs/{NO_JOB}/events"
         sub = op.declare_subscriber("cell/*/jobs/*/events", on)
-        time.sleep(0.5)
+        # the control, a cell's own event, is delivered: sent until one arrives (the subscription is in place)
+        _until(lambda: others["cell-sim-2"].put(own, b"own event") or arrived(b"own event"),
+               "a cell's own event never arrived", period_s=0.2)
         for user, s in others.items():
             s.put(f"cell/sim-1/jobs/{NO_JOB}/events", f"fake from {user}".encode())
-        others["cell-sim-2"].put(f"cell/sim-2/jobs/{NO_JOB}/events", b"own event")  # the control: delivered
-        deadline = time.monotonic() + 5
-        while not any(p == b"own event" for _, p in got):
-            assert time.monotonic() < deadline, got
-            time.sleep(0.05)
-        time.sleep(1.0)
+        # Instead of waiting a while for fakes that must not come: each session's messages reach the router in
+        # order, so once a query each faking session sent after its fake is answered, the router has handled
+        # the fake (forwarded it to the operator, or dropped it); the router forwards to the operator in order,
+        # so a fake it had forwarded arrives before a control published after that.
+        for user in ("viewer", "operator"):
+            assert len(answers(others[user].get("cell/sim-1/status", timeout=REPLY_S))) == 1, user
+        others["cell-sim-2"].put(own, b"last")  # after its own fake, on the same session
+        _until(lambda: arrived(b"last"), "the last control never arrived")
         with lock:
-            assert got == [(f"cell/sim-2/jobs/{NO_JOB}/events", b"own event")]
+            assert {k for k, _ in got} == {own} and {p for _, p in got} == {b"own event", b"last"}, got
         sub.undeclare()
     finally:
         for s in (op, *others.values()):
@@ -312,7 +398,7 @@ def test_a_scene_inside_the_allowed_directory_runs(scene_cell):
     svc, _ = scene_cell
     with svc.client() as c:
         job = c.submit({"scene": "configs/scenes/example_plate.yaml", "max_steps": 1, "noise": False}).job_id
-        rec = c.wait(job, 300)
+        rec = c.wait(job, JOB_S)
     assert rec.state == "done", rec.error
     assert rec.request.scene == "configs/scenes/example_plate.yaml" and rec.result.scene == "example_plate"
 

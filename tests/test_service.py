@@ -20,7 +20,12 @@ from cellctl.store import JobStore
 
 SHORT = {"scene": "smooth_cylinder", "max_steps": 2, "noise": False}
 LONG = {"scene": "smooth_cylinder", "max_steps": 12, "noise": False}  # cancelled or killed long before its end
-EXIT_S = 5.0  # a stopped service is gone within this
+# Liveness bounds: they fail on a hang, never because the machine is loaded (speed is `cellctl bench --service`);
+# each stays under pytest-timeout's 600 s per test (pyproject.toml), so a hang fails with its own message
+EXIT_S = 120.0  # a stopped service is gone within this (idle: under a second; a running job ends at its step)
+START_S = 120.0  # a started service answers within this (idle: a few seconds of imports)
+JOB_S = 300.0  # a short scan ends within this (idle: seconds)
+REPLY_S = 30.0  # a reply the test needs
 
 
 class Events:
@@ -46,22 +51,22 @@ class Events:
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory):
     """One service for the tests that need no restart; queue_max 1 makes 'queue full' cheap."""
-    svc = ServiceProcess(tmp_path_factory.mktemp("cell"), queue_max=1).start()
+    svc = ServiceProcess(tmp_path_factory.mktemp("cell"), queue_max=1).start(START_S)
     yield svc
-    rc, took = svc.stop(signal.SIGTERM)
-    assert rc == 0 and took < EXIT_S
+    rc, _took = svc.stop(signal.SIGTERM, EXIT_S)
+    assert rc == 0
 
 
 def test_submit_events_result_survive_a_restart(tmp_path):
-    svc = ServiceProcess(tmp_path, cell_id="cell-a").start()
+    svc = ServiceProcess(tmp_path, cell_id="cell-a").start(START_S)
     try:
-        with svc.client() as c:
+        with svc.client(REPLY_S) as c:
             events = Events()
             t0 = time.perf_counter()
             job_id = c.submit(SHORT, on_event=events).job_id
-            rec = c.wait(job_id, 120)
+            rec = c.wait(job_id, JOB_S)
+            events.wait_for(lambda e: e.phase == "done")
             first_event_ms = 1e3 * (events.times[0] - t0)
-            events.wait_for(lambda e: e.phase == "done", 10)
             status = c.status()
         assert rec.state == "done", rec.error
         seqs = [e.seq for e in events.items]
@@ -83,31 +88,31 @@ def test_submit_events_result_survive_a_restart(tmp_path):
         assert status.jobs_total == 1 and status.arm_ready and status.accepting_jobs
         print(f"submit -> first event {first_event_ms:.1f} ms, startup {svc.startup_s:.2f} s")
 
-        rc, took = svc.stop(signal.SIGTERM)
-        assert rc == 0 and took < EXIT_S, took
-        svc.start()
-        with svc.client() as c:
+        rc, _took = svc.stop(signal.SIGTERM, EXIT_S)
+        assert rc == 0
+        svc.start(START_S)
+        with svc.client(REPLY_S) as c:
             again = c.job(job_id)
             listed = c.jobs()
         assert again.state == "done" and again.result == rec.result and again.transitions == rec.transitions
         assert [j.job_id for j in listed.jobs] == [job_id] and listed.jobs[0].coverage_percent == r.coverage_percent
-        rc, took = svc.stop(signal.SIGINT)
-        assert rc == 0 and took < EXIT_S, took
+        rc, _took = svc.stop(signal.SIGINT, EXIT_S)
+        assert rc == 0
     finally:
         svc.kill()
 
 
 def test_a_job_running_when_the_service_dies_is_interrupted(tmp_path):
-    svc = ServiceProcess(tmp_path).start()
+    svc = ServiceProcess(tmp_path).start(START_S)
     try:
-        with svc.client() as c:
+        with svc.client(REPLY_S) as c:
             events = Events()
             killed = c.submit(LONG, on_event=events).job_id
-            events.wait_for(lambda e: e.step == 0)
+            events.wait_for(lambda e: e.step == 0, JOB_S)
         svc.proc.send_signal(signal.SIGKILL)
-        svc.proc.wait(10)
-        svc.start()
-        with svc.client() as c:
+        svc.proc.wait(EXIT_S)
+        svc.start(START_S)
+        with svc.client(REPLY_S) as c:
             rec = c.job(killed)
             assert rec.state == "interrupted" and "interrupted" in rec.error
             assert [t.state for t in rec.transitions] == ["queued", "running", "interrupted"]
@@ -115,9 +120,9 @@ def test_a_job_running_when_the_service_dies_is_interrupted(tmp_path):
             # SIGTERM while a job runs: the scan stops, its partial result is kept, the process exits
             events = Events()
             stopped = c.submit(LONG, on_event=events).job_id
-            events.wait_for(lambda e: e.step == 0)
-        rc, took = svc.stop(signal.SIGTERM)
-        assert rc == 0 and took < EXIT_S, took
+            events.wait_for(lambda e: e.step == 0, JOB_S)
+        rc, _took = svc.stop(signal.SIGTERM, EXIT_S)
+        assert rc == 0
         store = JobStore(svc.data_dir / "jobs.sqlite")
         rec = store.get(stopped)
         store.close()
@@ -165,10 +170,10 @@ def test_bad_keys_and_ids_get_an_error_reply(cell):
 
 
 def test_queue_full_then_cancel_queued_and_running(cell):
-    with cell.client() as c:
+    with cell.client(REPLY_S) as c:
         events = Events()
         running = c.submit(LONG, on_event=events).job_id
-        events.wait_for(lambda e: e.step == 0)
+        events.wait_for(lambda e: e.step == 0, JOB_S)
         queued = c.submit(LONG)
         assert queued.queue_position == 1
         with pytest.raises(CellError) as e:
@@ -179,19 +184,21 @@ def test_queue_full_then_cancel_queued_and_running(cell):
 
         assert c.cancel(queued.job_id).state == "cancelled"
         assert c.job(queued.job_id).state == "cancelled"
-        t0 = time.perf_counter()
         assert c.cancel(running, reason="test").state == "cancelling"
-        rec = c.wait(running, 60)
-        cancel_s = time.perf_counter() - t0
+        rec = c.wait(running, JOB_S)
         assert rec.state == "cancelled" and rec.result.terminated_by == "cancelled" and rec.result.steps >= 1
         assert rec.result.cut is None
         assert [t.state for t in rec.transitions] == ["queued", "running", "cancelling", "cancelled"]
         assert rec.transitions[2].note == "cancel requested: test"
         for name in ("result.json", "drawing.ply", "surface.ply", "scan.rrd"):
             assert name in rec.artifacts.files, name
-        events.wait_for(lambda e: e.phase == "cancelled", 10)
+        events.wait_for(lambda e: e.phase == "cancelled")
         assert "planning-cut" not in [e.phase for e in events.items]
-        assert cancel_s < 10, cancel_s
+        # the cancel took effect at once: the step in progress when it came (its event says "cancelling") was
+        # the last; counted in steps, not seconds, which depend on the machine's load
+        steps = [(e.step, e.state) for e in events.items if e.phase == "scanning" and e.step is not None]
+        assert [s for s, _ in steps] == list(range(rec.result.steps)), steps
+        assert sum(state == "cancelling" for _, state in steps) <= 1 and rec.result.steps < LONG["max_steps"], steps
 
         for job_id, code in [(running, "not_cancellable"), (queued.job_id, "not_cancellable")]:
             with pytest.raises(CellError) as e:
@@ -206,9 +213,9 @@ def test_queue_full_then_cancel_queued_and_running(cell):
 def test_cli_status_and_clear_no_reply(cell):
     def cli(*args):
         return subprocess.run([sys.executable, "-m", "cellctl.cli", *args], cwd=ROOT, capture_output=True,
-                              text=True, timeout=60)
+                              text=True, timeout=300)  # a liveness bound
 
-    ok = cli("status", "--cell", "sim-1", "--connect", cell.endpoint)
+    ok = cli("status", "--cell", "sim-1", "--connect", cell.endpoint, "--reply-timeout", str(REPLY_S))
     assert ok.returncode == 0 and "queue_length" in ok.stdout, ok.stderr
     nobody = cli("status", "--cell", "other-cell", "--connect", cell.endpoint, "--reply-timeout", "1")
     assert nobody.returncode == 3
@@ -235,9 +242,9 @@ def test_a_job_over_its_timeout_fails_in_process(tmp_path):
     svc = CellService(cfg, cfg_path)
     svc.start()
     try:
-        with CellClient("sim-1", [f"tcp/127.0.0.1:{port}"]) as c:
-            job_id = c.submit(LONG).job_id
-            rec = c.wait(job_id, 60)
+        with CellClient("sim-1", [f"tcp/127.0.0.1:{port}"], timeout_s=REPLY_S) as c:
+            job_id = c.submit(LONG).job_id  # 12 views: far longer than the 1 s job timeout on any machine
+            rec = c.wait(job_id, JOB_S)
         assert rec.state == "failed" and rec.error.startswith("timeout:"), rec.error
         assert "result.json" in rec.artifacts.files
     finally:
@@ -246,21 +253,22 @@ def test_a_job_over_its_timeout_fails_in_process(tmp_path):
 
 
 def test_service_bench_measures_latency(tmp_path):
-    """`cellctl bench --service N`: a real service on loopback, figures in service.json/.md."""
+    """`cellctl bench --service N`: a real service on loopback, figures in service.json/.md. The figures
+    are measured, not judged here: how fast is the bench's business, and depends on the machine's load."""
     proc = subprocess.run([sys.executable, "-m", "cellctl.cli", "bench", "--service", "5", "--out", str(tmp_path)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=240)
+                          cwd=ROOT, capture_output=True, text=True, timeout=570)  # a liveness bound (idle: ~10 s)
     assert proc.returncode == 0, proc.stderr[-3000:]
     m = json.loads((tmp_path / "service.json").read_text())["service"]
-    assert m["status_rtt_idle_ms"]["n"] == 5 and m["status_rtt_idle_ms"]["median"] < 1000
+    assert m["status_rtt_idle_ms"]["n"] == 5 and 0 < m["status_rtt_idle_ms"]["median"]
     assert m["submit_to_first_event_ms"]["n"] == 5 and m["submit_to_first_event_idle_ms"] > 0
-    assert m["exit_status"] == 0 and m["sigterm_to_exit_s"] < EXIT_S
+    assert m["exit_status"] == 0 and m["sigterm_to_exit_s"] > 0
     assert "| status round trip, cell idle |" in (tmp_path / "service.md").read_text()
 
 
 def test_one_service_per_data_dir(cell):
     """A second service on the same data dir would mark the first one's running job interrupted."""
     second = subprocess.run([sys.executable, "-m", "cellctl.cli", "serve", "--config", str(cell.config), "--listen",
-                             f"tcp/127.0.0.1:{free_port()}"], cwd=ROOT, capture_output=True, text=True, timeout=60)
+                             f"tcp/127.0.0.1:{free_port()}"], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert second.returncode == 1 and "in use by another service" in second.stderr, second.stderr
     with cell.client() as c:
         assert c.status().accepting_jobs
