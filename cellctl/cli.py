@@ -102,7 +102,8 @@ def _submit(client, args: argparse.Namespace) -> int:
     reply = client.submit(req, on_event=bar)
     rec = client.wait(reply.job_id, args.timeout)
     bar.finish()
-    print(f"job {rec.job_id}: {rec.state}")
+    note = rec.transitions[-1].note if rec.transitions else None
+    print(f"job {rec.job_id}: {rec.state}" + (f" ({note})" if note else ""))
     if rec.result is not None:
         _print_summary(rec.result, Path(rec.artifacts.dir) if rec.artifacts else Path("?"))
     elif rec.error:
@@ -196,7 +197,7 @@ def _print_summary(r, run_dir: Path) -> None:
                                  + ("; uncut: " + ", ".join(f"{1000 * v:.0f} mm {k}" for k, v in sorted(uncut.items()))
                                     if uncut else "")
                                  + (f"; {c['error']}" if c["error"] else "")))
-        for msg in c.get("issues") or []:
+        for msg in c.get("issues") or c.get("warnings") or []:
             rows.append(("warning", msg))
         if c.get("accuracy"):
             a = c["accuracy"]
