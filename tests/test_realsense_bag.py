@@ -16,7 +16,7 @@ import pytest
 
 from cellctl.cli import main as cellctl_main
 from configs import CONFIG_DIR
-from drivers.interfaces import DeviceError, RGBDCamera
+from drivers.interfaces import DeviceError, Intrinsics, RGBDCamera
 from drivers.realsense import (CameraConfigError, RealSenseBag, RealSenseCamera, RealSenseConfig, check_devices,
                                list_devices, load_realsense_config, open_camera)
 from drivers.realsense.bag_writer import BagWriter, write_bag
@@ -196,10 +196,10 @@ def test_a_depth_imager_apart_from_the_colour_camera_is_aligned_onto_the_colour_
 
 
 def test_alignment_with_equal_grids_and_no_extrinsic_is_the_identity():
-    s = StreamModel(width=8, height=6, fx=5.0, fy=5.0, cx=3.5, cy=2.5)
+    s = StreamModel(Intrinsics(width=8, height=6, fx=5.0, fy=5.0, cx=3.5, cy=2.5))
     raw = np.random.default_rng(0).integers(0, 3000, size=(6, 8)).astype(np.uint16)
     # the general path (a zero but present extrinsic) must give the same as the shortcut
-    moved = StreamModel(width=8, height=6, fx=5.0, fy=5.0, cx=3.5, cy=2.5, R=np.eye(3), t=np.array([0.0, 0.0, 1e-12]))
+    moved = StreamModel(s.intrinsics, R=np.eye(3), t=np.array([0.0, 0.0, 1e-12]))
     np.testing.assert_array_equal(align_depth(raw, 0.001, s, s), raw)
     np.testing.assert_array_equal(align_depth(raw, 0.001, s, moved), raw)
 
@@ -207,8 +207,8 @@ def test_alignment_with_equal_grids_and_no_extrinsic_is_the_identity():
 def test_alignment_keeps_the_nearer_surface_where_footprints_overlap():
     """A 2x wider colour grid: each depth pixel covers 2x2 colour pixels; a near pixel beside a far
     one must win the pixels both reach, and the far one keeps the rest."""
-    d = StreamModel(width=4, height=2, fx=2.0, fy=2.0, cx=1.5, cy=0.5)
-    c = StreamModel(width=8, height=4, fx=4.0, fy=4.0, cx=3.5, cy=1.5)
+    d = StreamModel(Intrinsics(width=4, height=2, fx=2.0, fy=2.0, cx=1.5, cy=0.5))
+    c = StreamModel(Intrinsics(width=8, height=4, fx=4.0, fy=4.0, cx=3.5, cy=1.5))
     raw = np.full((2, 4), 2000, dtype=np.uint16)
     raw[0, 1] = 500
     out = align_depth(raw, 0.001, d, c)

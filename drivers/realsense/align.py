@@ -45,12 +45,14 @@ def project(points: np.ndarray, s: StreamModel) -> tuple[np.ndarray, np.ndarray]
     if s.distorted:
         fwd = s.model != "Inverse Brown Conrady"
         x, y = (_distort if fwd else _undistort)(x, y, s.model, s.coeffs)
-    return x * s.fx + s.cx, y * s.fy + s.cy
+    K = s.intrinsics
+    return x * K.fx + K.cx, y * K.fy + K.cy
 
 
 def deproject(u: np.ndarray, v: np.ndarray, z: np.ndarray, s: StreamModel) -> np.ndarray:
     """Pixel coordinates and depth along the optical axis -> (N, 3) points in the stream's frame."""
-    x, y = (u - s.cx) / s.fx, (v - s.cy) / s.fy
+    K = s.intrinsics
+    x, y = (u - K.cx) / K.fx, (v - K.cy) / K.fy
     if s.distorted:
         inv = s.model == "Inverse Brown Conrady"
         x, y = (_distort if inv else _undistort)(x, y, s.model, s.coeffs)
@@ -61,12 +63,11 @@ def align_depth(raw: np.ndarray, unit_m: float, depth: StreamModel, color: Strea
     """Raw uint16 depth on the depth stream's grid -> raw uint16 depth on the colour grid (0 = no
     return). ``unit_m`` is the metres per depth unit, for the metric extrinsic."""
     raw = np.asarray(raw)
-    if raw.shape != (depth.height, depth.width) or raw.dtype != np.uint16:
-        raise ValueError(f"depth image must be ({depth.height}, {depth.width}) uint16, got {raw.shape} {raw.dtype}")
+    Kd, Kc = depth.intrinsics, color.intrinsics
+    if raw.shape != (Kd.height, Kd.width) or raw.dtype != np.uint16:
+        raise ValueError(f"depth image must be ({Kd.height}, {Kd.width}) uint16, got {raw.shape} {raw.dtype}")
     T = color.from_reference() @ np.linalg.inv(depth.from_reference())  # depth -> colour
-    same_grid = (depth.width, depth.height, depth.fx, depth.fy, depth.cx, depth.cy) == (
-        color.width, color.height, color.fx, color.fy, color.cx, color.cy)
-    if same_grid and not depth.distorted and not color.distorted and np.array_equal(T, np.eye(4)):
+    if Kd == Kc and not depth.distorted and not color.distorted and np.array_equal(T, np.eye(4)):
         return raw.copy()  # the footprint rule maps every pixel onto itself
     vs, us = np.nonzero(raw)
     z = raw[vs, us].astype(np.float64) * unit_m
@@ -80,7 +81,7 @@ def align_depth(raw: np.ndarray, unit_m: float, depth: StreamModel, color: Strea
     lo_u, hi_u = np.minimum(u0, u1), np.maximum(u0, u1)  # a mirrored extrinsic swaps the corners
     lo_v, hi_v = np.minimum(v0, v1), np.maximum(v0, v1)
     ok = (np.isfinite(lo_u) & np.isfinite(lo_v) & np.isfinite(hi_u) & np.isfinite(hi_v) & (z0 > 0) & (z1 > 0)
-          & (lo_u >= 0) & (lo_v >= 0) & (hi_u <= color.width) & (hi_v <= color.height))
+          & (lo_u >= 0) & (lo_v >= 0) & (hi_u <= Kc.width) & (hi_v <= Kc.height))
     lo_u, lo_v = lo_u[ok].astype(np.int64), lo_v[ok].astype(np.int64)
     nu = np.minimum(hi_u[ok].astype(np.int64) - lo_u, MAX_FOOTPRINT_PX)
     nv = np.minimum(hi_v[ok].astype(np.int64) - lo_v, MAX_FOOTPRINT_PX)
@@ -89,11 +90,11 @@ def align_depth(raw: np.ndarray, unit_m: float, depth: StreamModel, color: Strea
     zc = np.rint(0.5 * (z0[ok] + z1[ok]) / unit_m)
     values = np.clip(zc, 1, np.iinfo(np.uint16).max).astype(np.uint32)
     empty = np.iinfo(np.uint32).max  # above every uint16 depth, so 65535 survives
-    out = np.full(color.height * color.width, empty, dtype=np.uint32)
+    out = np.full(Kc.height * Kc.width, empty, dtype=np.uint32)
     span_u, span_v = int(nu.max(initial=0)), int(nv.max(initial=0))
     for dv in range(span_v):  # loops over footprint offsets (a few), never over pixels
         for du in range(span_u):
             m = (du < nu) & (dv < nv)
-            np.minimum.at(out, (lo_v[m] + dv) * color.width + lo_u[m] + du, values[m])
+            np.minimum.at(out, (lo_v[m] + dv) * Kc.width + lo_u[m] + du, values[m])
     out[out == empty] = 0
-    return out.astype(np.uint16).reshape(color.height, color.width)
+    return out.astype(np.uint16).reshape(Kc.height, Kc.width)

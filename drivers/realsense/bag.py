@@ -151,8 +151,7 @@ class RealSenseBag:
             self.close()
             raise
         md = self.metadata
-        self.intrinsics = Intrinsics(width=md.color.width, height=md.color.height, fx=md.color.fx, fy=md.color.fy,
-                                     cx=md.color.cx, cy=md.color.cy)
+        self.intrinsics = md.color.intrinsics
         self.depth_scale = md.depth_scale
         self.fps = md.fps
         self._color_conn, self._depth_conn = conns["Color"], conns["Depth"]
@@ -320,8 +319,9 @@ class RealSenseBag:
 
 def _image_array(msg, dtype, channels: int, s: StreamModel) -> np.ndarray:
     dtype = np.dtype(dtype)
-    if (msg.width, msg.height) != (s.width, s.height):
-        raise ValueError(f"image is {msg.width}x{msg.height}, its stream says {s.width}x{s.height}")
+    K = s.intrinsics
+    if (msg.width, msg.height) != (K.width, K.height):
+        raise ValueError(f"image is {msg.width}x{msg.height}, its stream says {K.width}x{K.height}")
     row = msg.width * channels * dtype.itemsize
     data = np.asarray(msg.data, dtype=np.uint8)
     if msg.step < row or data.size < msg.step * msg.height:
@@ -353,5 +353,6 @@ def _stream_model(cam, tf, path: Path, what: str) -> StreamModel:
         t = np.array([tf.translation.x, tf.translation.y, tf.translation.z], dtype=np.float64)
         if not np.all(np.isfinite(t)):
             raise DeviceError(f"{path}: the {what} stream's extrinsic translation is not finite: {t.tolist()}")
-    return StreamModel(width=w, height=h, fx=float(K[0]), fy=float(K[4]), cx=float(K[2]), cy=float(K[5]),
+    return StreamModel(Intrinsics(width=w, height=h, fx=float(K[0]), fy=float(K[4]), cx=float(K[2]),
+                                  cy=float(K[5])),
                        model=model, coeffs=coeffs, R=R, t=t)

@@ -9,6 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drivers.interfaces import Intrinsics
+
 FILE_VERSION = 4
 #: librealsense's default depth unit (1 mm); a recording states its own in the Depth_Units option.
 DEPTH_UNIT_M = 0.001
@@ -38,16 +40,11 @@ def typestore():
 
 @dataclass(frozen=True)
 class StreamModel:
-    """One image stream as the bag describes it: pinhole intrinsics, librealsense distortion model
-    and its five coefficients, and the extrinsic from the reference stream to this stream
+    """One image stream as the bag describes it: its pinhole intrinsics, librealsense distortion
+    model and its five coefficients, and the extrinsic from the reference stream to this stream
     (``p_stream = R @ p_ref + t``, librealsense's rs2_extrinsics)."""
 
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
+    intrinsics: Intrinsics
     model: str = "Brown Conrady"
     coeffs: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
     R: np.ndarray | None = None  # (3, 3); None = identity
@@ -69,14 +66,13 @@ class StreamModel:
 
 def quat_to_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
     """Unit quaternion (as librealsense's rot2quat writes it) to a rotation matrix."""
-    q = np.array([w, x, y, z], dtype=np.float64)
+    from scipy.spatial.transform import Rotation
+
+    q = np.array([x, y, z, w], dtype=np.float64)
     n = np.linalg.norm(q)
     if not np.isfinite(n) or n < 1e-9:
         raise ValueError(f"extrinsic rotation is not a quaternion: {q.tolist()}")
-    w, x, y, z = q / n
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return Rotation.from_quat(q / n).as_matrix()
 
 
 def matrix_to_quat(R: np.ndarray) -> tuple[float, float, float, float]:

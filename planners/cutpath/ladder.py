@@ -152,7 +152,6 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
     free = np.ones_like(valid)
 
     rung_axis = np.repeat(axes, S, axis=1)  # (N, O*S, 3)
-    tips_r = tips  # (N, O, 3): a rung's tip is tips[layer, rung // S]
 
     def edges(k: int, usable: np.ndarray) -> np.ndarray:
         """(R,R) bool: rung i of layer k joins rung j of layer k+1. The joints may move
@@ -187,7 +186,7 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
                     hit_layers.update(lay[need][~res].tolist())
         if not hit_layers and is_free is not None:
             # the rungs are free: now the motion between them (joint-space steps of at most 1 degree)
-            hit_edges = _check_motion(runs, chosen, Qf, tips_r, S, cfg, max_vel, is_free, edge_ok)
+            hit_edges = _check_motion(runs, chosen, Qf, tips, S, cfg, max_vel, is_free, edge_ok)
             for k, a, b in hit_edges:
                 blocked.setdefault(k, []).append((a, b))
             if hit_edges:

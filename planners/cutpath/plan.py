@@ -143,12 +143,6 @@ def _air_routes(kin: Kinematics, q_from: np.ndarray, q_to: np.ndarray, cfg: CutP
             yield [q_from, up_from, park_q, up_to, q_to]
 
 
-def _backed_off(T: np.ndarray, distance: float) -> np.ndarray:
-    out = T.copy()
-    out[:3, 3] -= distance * T[:3, 2]
-    return out
-
-
 def _free(is_free: IsFree | None, Q: np.ndarray) -> np.ndarray:
     if is_free is None or len(Q) == 0:
         return np.ones(len(Q), dtype=bool)
