@@ -12,6 +12,7 @@ from scipy.sparse.csgraph import connected_components, depth_first_order, dijkst
 from scipy.spatial import cKDTree
 
 from planners.cutpath import _checks
+from planners.cutpath.geometry import arc_length
 from planners.skeleton import thin
 
 JUNCTION, END, LOOP = "junction", "end", "loop"
@@ -391,7 +392,7 @@ def through_junctions(g: DrawingGraph, max_turn_deg: float = 45.0, near_m: float
 
     def away(p: np.ndarray, at_start: bool) -> np.ndarray | None:
         q = p if at_start else p[::-1]
-        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(q, axis=0), axis=1))])
+        s = arc_length(q)
         i = min(int(np.searchsorted(s, near_m)), len(q) - 1)
         j = min(int(np.searchsorted(s, far_m)), len(q) - 1)
         d = q[j] - q[i] if j > i else q[-1] - q[0]

@@ -10,7 +10,7 @@ import numpy as np
 from planners.clouds import Cloud
 from planners.cutpath import _checks
 from planners.cutpath.config import CutPathConfig
-from planners.cutpath.geometry import Surface, on_surface, smooth_resample, torch_poses
+from planners.cutpath.geometry import Surface, arc_length, on_surface, smooth_resample, torch_poses
 from planners.cutpath.graph import END, JUNCTION, LOOP, drawing_graph, through_junctions
 from planners.cutpath.ladder import RECONFIGURE, cut_spline, every_degree, plan_ladder, tilt_directions
 from planners.cutpath.pieces import short_pieces
@@ -168,7 +168,7 @@ def _runs_of(b: Branch, index: int, kin: Kinematics, q_here: np.ndarray, cfg: Cu
     solutions chosen, poses tilted as chosen) and its uncut gaps with their reasons."""
     lad = plan_ladder(kin, b.poses, b.times, q_here, cfg, is_free, max_vel)
     n = len(b)
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(b.points, axis=0), axis=1))])
+    s = arc_length(b.points)
     runs = []
     for r in lad.runs:
         sl = slice(r.first, r.last + 1)
