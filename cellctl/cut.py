@@ -16,6 +16,7 @@ from planners.cutpath import CutPath, plan_cut_path, torch_kinematics
 from planners.grid import OccupancyGrid
 from planners.motion.collision import CollisionChecker, CollisionConfig, RobotCollisionModel, TorchShape
 from planners.motion.kinematics import Kinematics
+from sim.config import TwinToolConfig
 
 
 @dataclass
@@ -37,13 +38,27 @@ class CutSummary:
     clearing_views: int = 0  # views taken after the scan to see the space the torch needs
 
 
-def torch_checker(arm_model, ccfg: CollisionConfig, cut: CutPathConfig, grid: OccupancyGrid) -> CollisionChecker:
-    """Arm + camera + torch against the scan, with the cut's own (small) margin. The last
-    ``nozzle_exempt_m`` of the torch is left out: the nozzle works ``standoff_m`` off the metal."""
+def twin_torch(cut: CutPathConfig) -> TwinToolConfig:
+    """The torch as the twin's tool: the dry run then sees the torch's own contacts, not only the arm's."""
     t = cut.torch
-    shape = TorchShape(t.radius_m, t.length_m - cut.nozzle_exempt_m, t.T_flange_mount())
+    return TwinToolConfig(xyz=list(t.xyz_m), rpy_deg=list(t.rpy_deg), radius_m=t.radius_m, length_m=t.length_m,
+                          nozzle_radius_m=t.nozzle_radius_m, nozzle_length_m=t.nozzle_length_m)
+
+
+def torch_shape(cut: CutPathConfig, *, nozzle: bool = True) -> TorchShape:
+    """The torch as a cylinder on the flange for the collision model: its whole length (the scan's
+    moves keep it clear like any link), or without the nozzle (the cut's check, see torch_checker)."""
+    t = cut.torch
+    return TorchShape(t.radius_m, t.length_m - (0.0 if nozzle else t.nozzle_length_m), t.T_flange_mount())
+
+
+def torch_checker(arm_model, ccfg: CollisionConfig, cut: CutPathConfig, grid: OccupancyGrid) -> CollisionChecker:
+    """Arm + camera + torch head against the scan, with the cut's own (small) margin. The nozzle
+    (``torch.nozzle_length_m`` from the tip) is left to the cut planner's finer check against the
+    surface cloud (planners.cutpath.nozzle): it works ``standoff_m`` off the metal, closer than a cell."""
     cfg = ccfg.model_copy(update={"margin_m": cut.cut_margin_m})
-    checker = CollisionChecker(RobotCollisionModel.from_arm_model(arm_model, cfg, torch=shape), cfg)
+    checker = CollisionChecker(RobotCollisionModel.from_arm_model(arm_model, cfg, torch=torch_shape(cut, nozzle=False)),
+                               cfg)
     checker.set_scene_from_grid(grid)
     return checker
 
@@ -60,11 +75,8 @@ def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: Occupanc
     try:
         checker = torch_checker(m, ccfg, cut, grid)
 
-        def is_free(Q: np.ndarray) -> np.ndarray:  # per pose of a branch: a few hundred
-            return np.array([not checker.in_collision(q) for q in Q], dtype=bool)
-
         path = plan_cut_path(drawing, surface, kin, arm.joint_positions(), cut, viewpoint=viewpoint,
-                             is_free=is_free, max_vel=m.max_velocity, max_acc=m.max_acceleration,
+                             is_free=checker.free, max_vel=m.max_velocity, max_acc=m.max_acceleration,
                              max_jerk=m.max_jerk, park_q=park_q)
     except ValueError as e:
         summary.error = str(e)
@@ -115,7 +127,7 @@ def dry_run_cut(arm: Arm, kin: Kinematics, path: CutPath) -> dict:
     """Run every feasible branch (approach, cut, retract) on the arm, torch off, and measure the
     torch tip against the plan: at the same instant, and as distance from the planned path."""
     planned_tip, errors_t, errors_path, contacts, moved = [], [], [], [], 0
-    for b in path.branches:
+    for i, b in enumerate(path.branches):
         if not b.feasible:
             continue
         for phase in ("approach", "cut", "retract"):
@@ -126,7 +138,7 @@ def dry_run_cut(arm: Arm, kin: Kinematics, path: CutPath) -> dict:
                 jq = np.vstack([q_now, jq[1:]])
             arm.execute(JointTrajectory(jp.times, jq, jp.velocities))
             moved += 1
-            contacts += list(getattr(arm, "last_motion_contacts", []))
+            contacts += [{**c, "cut": i, "phase": phase} for c in getattr(arm, "last_motion_contacts", [])]
             if phase != "cut":
                 continue
             desired = getattr(arm, "last_motion_desired", None)

@@ -47,3 +47,49 @@ def coverage_figure(path: str | Path, gt: np.ndarray, recon: np.ndarray, viewpoi
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
+
+
+def cut_figure(path: str | Path, surface: np.ndarray, cuts: list[np.ndarray], gaps: list[dict],
+               truth: list[np.ndarray] | None = None, title: str = "") -> None:
+    """The cut as planned: the scanned surface (grey), each runnable cut (green, numbered in cutting
+    order, its start marked), each uncut stretch (red, with its reason and length) and, in the
+    twin, the true painted line (thin black). Three views, as the coverage figure."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    shown = [c for c in cuts if len(c)] + [np.asarray(g["points"]) for g in gaps if len(g.get("points") or [])]
+    allp = np.vstack(shown) if shown else (surface if len(surface) else np.zeros((1, 3)))
+    mid = (allp.max(0) + allp.min(0)) / 2
+    r = (allp.max(0) - allp.min(0)).max() / 2 + 0.03
+    near = surface[np.all(np.abs(surface - mid) <= r, axis=1)] if len(surface) else surface
+    fig = plt.figure(figsize=(12, 4.6))
+    for i, (elev, azim) in enumerate([(90, -90), (25, -60), (25, 120)]):
+        ax = fig.add_subplot(1, 3, i + 1, projection="3d")
+        if len(near):
+            s = near[:: max(1, len(near) // 5000)]
+            ax.scatter(s[:, 0], s[:, 1], s[:, 2], s=0.3, c="0.7", alpha=0.35)
+        for line in truth or []:
+            ax.plot(*np.asarray(line).T, c="k", lw=0.6, label="true line" if line is truth[0] else None)
+        for k, c in enumerate(cuts):
+            ax.plot(*c.T, c="tab:green", lw=2.2, label="cut" if k == 0 else None)
+            ax.scatter(*c[0], c="tab:green", s=14)
+            ax.text(*c[0], str(k), fontsize=7)
+        for k, g in enumerate([g for g in gaps if g["length_m"] > 0]):  # a reconfiguration leaves nothing uncut
+            pts = np.asarray(g.get("points") or [g["start"], g["end"]])
+            ax.plot(*pts.T, c="tab:red", lw=3.0, label="not cut" if k == 0 else None)
+            if i == 0:
+                ax.text(*pts[len(pts) // 2], f"{g['reason']} {1000 * g['length_m']:.0f} mm", fontsize=7, c="tab:red")
+        ax.set_xlim(mid[0] - r, mid[0] + r)
+        ax.set_ylim(mid[1] - r, mid[1] + r)
+        ax.set_zlim(mid[2] - r, mid[2] + r)
+        ax.view_init(elev=elev, azim=azim)
+        ax.set_xlabel("x")
+        ax.set_ylabel("y")
+        if i == 0:
+            ax.legend(loc="upper left", fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

@@ -19,6 +19,7 @@ from typing import Callable, TypeVar
 import numpy as np
 
 from cellctl.config import MotionConfig
+from cellctl.cut import torch_shape
 from drivers.interfaces import Arm, DeviceError, JointTrajectory, RGBDCamera, RGBDFrame, TrajectoryError
 from planners import clouds, raycast
 from planners.base import ScanState, ViewPlan
@@ -132,7 +133,8 @@ class ScanJob:
         self.planner = make_planner(planner_name, pcfg)
         m = arm.model
         self.kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
-        self.robot = RobotCollisionModel.from_arm_model(m, mcfg.collision)
+        # the torch rides on the hand through the scan too: its moves keep it clear like any link
+        self.robot = RobotCollisionModel.from_arm_model(m, mcfg.collision, torch=torch_shape(pcfg.cutpath))
         self.checker = CollisionChecker(self.robot, mcfg.collision) if mcfg.check_collisions else None
         if recorder is not None:
             recorder.log_robot_geometry(self.robot)

@@ -14,9 +14,9 @@ import numpy as np
 
 from cellctl.artifacts import new_run_dir, save_png, write_json, write_ply
 from cellctl.config import CellConfig
-from cellctl.cut import clearing_targets, dry_run_cut, plan_cut, write_trajectory
+from cellctl.cut import clearing_targets, dry_run_cut, plan_cut, twin_torch, write_trajectory
 from cellctl.devices import open_devices
-from cellctl.plots import coverage_figure
+from cellctl.plots import coverage_figure, cut_figure
 from cellctl.recording import ScanRecorder
 from cellctl.scan import ScanJob, ScanResult, StepRecord
 from drivers.interfaces import Arm
@@ -46,6 +46,7 @@ def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, arm: Arm, run_dir: Path, rec
         path.write(run_dir)
         write_trajectory(path, run_dir / "cut_trajectory.npz")
         recorder.log_cut(len(result.records), path)
+        _cut_picture(run_dir, job, path, summary, truth)
         if dry_run:
             summary.dry_run = dry_run_cut(arm, kin, path)
         if truth:
@@ -72,6 +73,17 @@ def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, arm: Arm, run_dir: Path, rec
                   f"{a['strokes']} strokes", file=sys.stderr, flush=True)
 
 
+def _cut_picture(run_dir: Path, job: ScanJob, path, summary, truth: tuple | None) -> None:
+    """cut.png: what will be cut and what not, and why (a picture must never fail the job)."""
+    try:
+        cuts = [b.points for b in path.branches if b.feasible]
+        cut_figure(run_dir / "cut.png", job.surface.xyz, cuts, summary.gaps, truth[0] if truth else None,
+                   f"{100 * summary.cut_fraction:.1f} % of the {1000 * summary.drawing_length_m:.0f} mm line "
+                   f"will be cut, in {len(cuts)} cuts")
+    except Exception as e:  # noqa: BLE001 - reported, the cut itself is written already
+        summary.issues.append(f"could not draw cut.png: {type(e).__name__}: {e}")
+
+
 def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, seed: int | None = None,
                      noise: bool = True, out: str | None = None, max_steps: int | None = None,
                      progress: bool = True, cut: bool = True, dry_run_cut: bool = False,
@@ -89,7 +101,7 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
         pcfg = pcfg.model_copy(update={"max_steps": max_steps})
     scene = load_scene(scene_ref)
     cam_cfg = cfg.twin.camera.model_copy(update={"noise": noise, **({"seed": seed} if seed is not None else {})})
-    twin_cfg = cfg.twin.model_copy(update={"camera": cam_cfg})
+    twin_cfg = cfg.twin.model_copy(update={"camera": cam_cfg, "tool": twin_torch(pcfg.cutpath)})
     if run_dir is None:
         run_dir = new_run_dir(out or cfg.runs_dir, scene.name, planner)
     else:

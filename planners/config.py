@@ -131,11 +131,19 @@ class TorchConfig(_Strict):
 
     xyz_m: tuple[float, float, float] = (0.0, 0.0, 0.20)  # along the flange z axis, past the fingers
     rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # fixed-axis roll x, pitch y, yaw z, as the hand-eye
-    radius_m: float = Field(0.015, gt=0, le=0.2)
-    length_m: float = Field(0.18, gt=0, le=1.0)
+    radius_m: float = Field(0.015, gt=0, le=0.2, description="the torch head")
+    length_m: float = Field(0.18, gt=0, le=1.0, description="tip to the back end, nozzle included")
+    # an oxy-fuel cutting nozzle tapers from the head to a tip about 12 mm across
+    nozzle_radius_m: float = Field(0.006, gt=0, le=0.2, description="the nozzle at its tip")
+    nozzle_length_m: float = Field(0.03, ge=0, le=0.5, description="the taper from the head to the tip")
 
     @model_validator(mode="after")
     def _check(self) -> "TorchConfig":
+        if self.nozzle_radius_m > self.radius_m:
+            raise ValueError(f"torch nozzle_radius_m ({self.nozzle_radius_m}) is wider than its head ({self.radius_m})")
+        if self.nozzle_length_m >= self.length_m:
+            raise ValueError(f"torch nozzle_length_m ({self.nozzle_length_m}) must be shorter than the torch "
+                             f"({self.length_m})")
         if any(abs(v) > 360.0 for v in self.rpy_deg):
             raise ValueError(f"torch rpy_deg {self.rpy_deg} outside [-360, 360]")
         if float(np.linalg.norm(self.xyz_m)) > 1.0:
@@ -167,6 +175,7 @@ class CutPathConfig(_Strict):
     corner_deg: float = Field(45.0, gt=0, le=180, description="a turn sharper than this is a corner: not smoothed away")
     corner_scale_m: float = Field(0.03, ge=0, le=0.2, description="arc over which a corner's turn is measured (0: no corners)")
     spacing_m: float = Field(0.005, ge=0.0005, le=0.1, description="arc length between torch poses")
+    pivot_step_deg: float = Field(10.0, gt=0, le=90, description="a larger turn of the normal between poses is taken in steps")
     normal_radius_m: float = Field(0.02, gt=0.002, le=0.2, description="neighbourhood of the surface normal (PCA)")
     # torch poses
     standoff_m: float = Field(0.010, ge=0, le=0.1, description="tip to surface along the normal")
@@ -190,15 +199,12 @@ class CutPathConfig(_Strict):
     # collision checks of the cut (the torch must come close to the metal: its nozzle is exempt)
     cut_margin_m: float = Field(0.005, ge=0, le=0.1, description="clearance of arm and torch from the scan")
     max_clearing_views: int = Field(2, ge=0, le=8, description="views after the scan where unseen space blocks the torch")
-    nozzle_exempt_m: float = Field(0.03, ge=0, le=0.5, description="this much of the torch, from the tip, is not checked")
+    nozzle_margin_m: float = Field(0.002, ge=0, le=0.05, description="clearance of the nozzle from the scanned surface")
 
     @model_validator(mode="after")
     def _sizes(self) -> "CutPathConfig":
         if self.normal_radius_m < self.voxel_m:
             raise ValueError(f"normal_radius_m ({self.normal_radius_m}) must be at least voxel_m ({self.voxel_m})")
-        if self.nozzle_exempt_m >= self.torch.length_m:
-            raise ValueError(f"nozzle_exempt_m ({self.nozzle_exempt_m}) must be shorter than the torch "
-                             f"({self.torch.length_m} m)")
         return self
 
 

@@ -10,7 +10,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from configs.loading import load_yaml_model
-from configs.poses import HandEyeBase, Vec3
+from configs.poses import HandEyeBase, Vec3, pose_from_xyz_rpy_deg
 from sim.faults import FaultsConfig
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
@@ -83,6 +83,42 @@ class _HandEyeFile(BaseModel):
 Joint7 = Annotated[list[Annotated[float, Field(ge=-4.0, le=4.0)]], Field(min_length=7, max_length=7)]
 
 
+class TwinToolConfig(BaseModel):
+    """A tool on the hand whose contacts the twin reports (the cutting torch): a cylinder of
+    ``radius_m`` from its tip back ``length_m`` along -z of the tip frame ``xyz``/``rpy_deg`` in the
+    flange frame. Contact only, never drawn: the camera sees what the real one sees of the piece."""
+
+    model_config = _STRICT
+
+    xyz: Vec3
+    rpy_deg: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    radius_m: float = Field(gt=0, le=0.2)
+    length_m: float = Field(gt=0, le=1.0)
+    nozzle_radius_m: float | None = Field(None, gt=0, le=0.2, description="at the tip; None: radius_m")
+    nozzle_length_m: float = Field(0.0, ge=0, le=1.0, description="the taper from radius_m to the tip")
+
+    @model_validator(mode="after")
+    def _nozzle(self) -> "TwinToolConfig":
+        if self.nozzle_length_m >= self.length_m:
+            raise ValueError(f"tool nozzle_length_m ({self.nozzle_length_m}) must be shorter than length_m "
+                             f"({self.length_m})")
+        return self
+
+    def T_flange_tip(self) -> np.ndarray:
+        """4x4 pose of the tip frame in the flange frame."""
+        return pose_from_xyz_rpy_deg(self.xyz, self.rpy_deg)
+
+    def hull(self, sides: int = 24) -> np.ndarray:
+        """(3 * sides, 3) vertices in the tip frame whose convex hull is the tool: the back ring, the
+        ring where the nozzle starts and the tip ring (a polygon round each circle)."""
+        a = 2 * np.pi * (np.arange(sides) + 0.5) / sides
+        ring = np.stack([np.cos(a), np.sin(a), np.zeros(sides)], axis=1) / np.cos(np.pi / sides)
+        tip = self.radius_m if self.nozzle_radius_m is None else self.nozzle_radius_m
+        return np.vstack([ring * [self.radius_m, self.radius_m, 0] + [0, 0, -self.length_m],
+                          ring * [self.radius_m, self.radius_m, 0] + [0, 0, -self.nozzle_length_m],
+                          ring * [tip, tip, 0]])
+
+
 class TwinConfig(BaseModel):
     """The pybullet twin. ``execution``: "step" follows trajectories by position control with
     dynamics at ``sim_hz``; "teleport" sets the joint states at each sample (fast tests).
@@ -97,4 +133,5 @@ class TwinConfig(BaseModel):
     home_q: Joint7 = Field(default_factory=lambda: [0.0, -0.7, 0.0, -1.7, 0.0, 1.5, 0.785])
     sim_hz: int = Field(240, ge=60, le=2000)
     execution: Literal["step", "teleport"] = "step"
+    tool: TwinToolConfig | None = None
     faults: FaultsConfig = Field(default_factory=FaultsConfig)

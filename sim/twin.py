@@ -25,6 +25,7 @@ import numpy as np
 import pybullet as p
 import pybullet_data
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from drivers.interfaces import (ArmModel, DeviceError, Intrinsics, JointTrajectory, RGBDFrame,
                                 TrajectoryError)
@@ -39,6 +40,8 @@ JOINT_NAMES: tuple[str, ...] = tuple(f"panda_joint{i}" for i in range(1, 8))
 FINGER_NAMES: tuple[str, ...] = ("panda_finger_joint1", "panda_finger_joint2")
 BASE_LINK = "panda_link0"
 FLANGE_LINK = "panda_hand"
+TOOL_LINK = "tool"  # how contacts of TwinConfig.tool are named
+TOOL_STEP_M = 0.0005  # the tool's contacts are queried after this much travel of any of its points
 # Franka's published limits (Panda datasheet).
 MAX_VELOCITY = np.array([2.175] * 4 + [2.61] * 3)
 MAX_ACCELERATION = np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])
@@ -67,6 +70,11 @@ def _pose_matrix(position, quaternion_xyzw) -> np.ndarray:
     T[:3, :3] = np.asarray(p.getMatrixFromQuaternion(quaternion_xyzw)).reshape(3, 3)
     T[:3, 3] = position
     return T
+
+
+def _quaternion(R: np.ndarray) -> list[float]:
+    """pybullet's (x, y, z, w) of a rotation matrix."""
+    return Rotation.from_matrix(R).as_quat().tolist()
 
 
 def _readonly(a) -> np.ndarray:
@@ -112,6 +120,8 @@ class _Sim:
         self.client = -1
         self.robot = -1
         self.bodies: dict[int, str] = {}  # scene bodies the robot must not touch, by pybullet id
+        self.tool = -1  # the tool's body (TwinConfig.tool), -1 without one
+        self.T_flange_tool = np.eye(4)  # its tip frame in the flange frame
         self.lock = threading.RLock()
         self.closed = False
 
@@ -154,6 +164,7 @@ class TwinArm:
         #: with the scene during the last execute(): the twin's own check,
         #: independent of the planner's collision model. One entry per (link, body), first sample.
         self.last_motion_contacts: list[dict] = []
+        self._tool_checked_at: np.ndarray | None = None  # the tool's pose at its last contact query
         #: joints commanded and reached at every simulation step of the last execute() (T, 7): the
         #: tracking of a path (a cut) can be judged after the fact
         self.last_motion_desired = np.zeros((0, 7))
@@ -259,11 +270,26 @@ class TwinArm:
 
     def _note_contacts(self, sample: int) -> None:
         """Record robot-scene contacts of the current simulation state (caller holds the lock)."""
-        c, robot = self._sim.client, self._sim.robot
+        c, robot, tool = self._sim.client, self._sim.robot, self._sim.tool
         seen = {(e["link"], e["body"]) for e in self.last_motion_contacts}
+        check_tool = False
+        if tool >= 0:  # the tool follows the hand; touching (distance <= 0) is a contact
+            st = p.getLinkState(robot, self.flange_index, computeForwardKinematics=True, physicsClientId=c)
+            T = _pose_matrix(st[4], st[5]) @ self._sim.T_flange_tool
+            last = self._tool_checked_at
+            # a query per TOOL_STEP_M of tool travel (tip shift plus turn times its length), not per step
+            moved = np.inf if last is None or sample == 0 else (
+                np.linalg.norm(T[:3, 3] - last[:3, 3])
+                + np.linalg.norm(T[:3, :3] - last[:3, :3]) * self._config.tool.length_m)
+            if moved >= TOOL_STEP_M:
+                check_tool, self._tool_checked_at = True, T
+                p.resetBasePositionAndOrientation(tool, T[:3, 3].tolist(), _quaternion(T[:3, :3]), physicsClientId=c)
         for body, name in self._sim.bodies.items():
-            for cp in p.getContactPoints(bodyA=robot, bodyB=body, physicsClientId=c):
-                link = self._link_names.get(cp[3], str(cp[3]))
+            points = [(self._link_names.get(cp[3], str(cp[3])), cp)
+                      for cp in p.getContactPoints(bodyA=robot, bodyB=body, physicsClientId=c)]
+            if check_tool:
+                points += [(TOOL_LINK, cp) for cp in p.getClosestPoints(tool, body, 0.0, physicsClientId=c)]
+            for link, cp in points:
                 if (link, name) not in seen and not (name == "floor" and link == BASE_LINK):
                     seen.add((link, name))
                     self.last_motion_contacts.append({"link": link, "body": name, "sample": sample,
@@ -499,6 +525,9 @@ class Twin:
         sim.bodies = {i: n for i, n in ((self.object_id, "object"), (self.paint_id, "paint"), (self.floor_id, "floor"))
                       if i is not None}
         self.robot_id: int = sim.robot
+        if self.config.tool is not None:
+            sim.tool = self._add_tool(self.config.tool)
+            sim.T_flange_tool = self.config.tool.T_flange_tip()
         self.arm = TwinArm(sim, self.config)
         self.camera = TwinCamera(sim, self.arm, self.config)
         faults = self.config.faults
@@ -507,6 +536,17 @@ class Twin:
         if faults.camera.active:
             self.camera = FaultyCamera(self.camera, faults.camera)
         self.arm.reset(np.asarray(self.config.home_q))
+
+    def _add_tool(self, tool) -> int:
+        """The tool's cylinder: a body that takes part in no simulated collision (it rides on the
+        hand, where the dynamics would fight it) and is never drawn; ``_note_contacts`` moves it to
+        the hand and asks pybullet for its contacts with the scene."""
+        c = self._sim.client
+        col = p.createCollisionShape(p.GEOM_MESH, vertices=tool.hull().tolist(), physicsClientId=c)  # its hull
+        body = p.createMultiBody(baseMass=0.0, baseCollisionShapeIndex=col, baseVisualShapeIndex=-1,
+                                 physicsClientId=c)
+        p.setCollisionFilterGroupMask(body, -1, 0, 0, physicsClientId=c)
+        return body
 
     def _add_static(self, mesh: trimesh.Trimesh, rgb, name: str) -> int | None:
         if mesh is None or len(mesh.faces) == 0:

@@ -448,3 +448,27 @@ def test_static_boxes_of_the_cell_are_obstacles(robot):
     assert CollisionChecker(robot, CollisionConfig(static_boxes=[far])).check(PANDA_Q_READY) is None
     with pytest.raises(ValueError):
         CollisionConfig(static_boxes=[{"name": "x", "center_m": [0, 0, 0], "size_m": [0, 1, 1]}])
+
+
+def test_the_batched_check_gives_every_row_the_single_verdict(robot):
+    """free(Q) is the cut planner's check of thousands of configurations at once; it must say for
+    every row what check(q) says (floor, static box, scene with its distance-map shortcut, self)."""
+    from planners.motion.collision import StaticBox
+
+    hand = robot.part_poses(HOME)[robot.part_names.index("panda_hand")][:3, 3]
+    stand = StaticBox(name="stand", center_m=(0.5, -0.4, 0.1), size_m=(0.2, 0.2, 0.2))
+    torch = TorchShape(radius_m=0.015, length_m=0.2, T_flange_torch=np.eye(4))
+    ch = CollisionChecker(RobotCollisionModel(URDF, PANDA_JOINT_NAMES, FLANGE, hand_eye(), torch=torch),
+                          CollisionConfig(static_boxes=[stand]))
+    ch.set_scene(block(np.floor(hand / VOXEL) * VOXEL - [0.1, 0.1, 0.25], (20, 20, 6)), VOXEL)  # a slab under the hand
+    rng = np.random.default_rng(3)
+    Q = np.clip(np.vstack([HOME + rng.normal(0.0, 0.5, (400, 7)), rng.uniform(PANDA_Q_MIN, PANDA_Q_MAX, (400, 7))]),
+                PANDA_Q_MIN, PANDA_Q_MAX)
+    single = [ch.check(q) for q in Q]
+    kinds = {None if h is None else h.kind for h in single}
+    assert kinds == {None, "floor", "static", "scene", "self"}, kinds  # every branch of the check is met
+    np.testing.assert_array_equal(ch.free(Q), [h is None for h in single])
+    ch.clear_scene()
+    np.testing.assert_array_equal(ch.free(Q[:50]), [ch.check(q) is None for q in Q[:50]])
+    with pytest.raises(ValueError):
+        ch.free(np.full((2, 7), np.nan))

@@ -12,7 +12,8 @@ import pytest
 from planners.config import CutPathConfig
 from planners.cutpath import CutPath, build_cut_path, plan_cut, torch_kinematics
 from planners.cutpath.ladder import COLLISION, OUT_OF_REACH, RECONFIGURE, plan_ladder, tilt_directions
-from planners.cutpath.geometry import torch_poses
+from planners.cutpath.geometry import pivots, torch_poses
+from planners.cutpath.nozzle import NozzleCheck, nozzle_balls
 from planners.metrics import cut_accuracy
 from planners.motion.ik_batch import solve_axis_ik_batch
 from planners.motion.limits import PANDA_MAX_VELOCITY, PANDA_Q_READY
@@ -102,6 +103,46 @@ def test_the_torch_tilts_within_its_cone_to_clear_an_obstacle(kin):
     tilt = np.degrees(lad.runs[0].tilt_rad)
     assert tilt[mid].min() >= 3.0 and tilt.max() <= CFG.lead_lag_max_deg + 1e-6
     assert np.all(is_free(lad.runs[0].q))
+
+
+def test_the_nozzle_balls_contain_the_taper():
+    torch = CFG.torch
+    u, r = nozzle_balls(torch)
+    rng = np.random.default_rng(2)
+    z = rng.uniform(0.0, torch.nozzle_length_m, 4000)  # back from the tip
+    rho = torch.nozzle_radius_m + (torch.radius_m - torch.nozzle_radius_m) * z / torch.nozzle_length_m
+    a = rng.uniform(0, 2 * np.pi, len(z))
+    pts = np.column_stack([rho * np.cos(a), rho * np.sin(a), z])  # on the taper's surface
+    d = np.linalg.norm(pts[:, None, :] - np.column_stack([np.zeros((len(u), 2)), u])[None], axis=2)
+    assert (d <= r[None] + 1e-12).any(axis=1).all()
+    assert (r - u).max() < CFG.standoff_m - CFG.nozzle_margin_m, "upright over flat metal the nozzle is clear"
+
+
+def test_a_nozzle_leaning_into_a_wall_is_not_clear():
+    """A wall 20 mm beside the line: upright the nozzle clears it, leaning 20 deg towards it not."""
+    y, z = np.meshgrid(np.arange(-0.05, 0.05, 0.002), np.arange(0.0, 0.08, 0.002))
+    wall = np.column_stack([np.full(y.size, 0.020), y.ravel(), z.ravel()])
+    x, y = np.meshgrid(np.arange(-0.05, 0.019, 0.002), np.arange(-0.05, 0.05, 0.002))
+    floor = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    check = NozzleCheck(np.vstack([wall, floor]), CFG.torch, CFG.nozzle_margin_m)
+    lean = np.radians(20.0)
+    # the axis points from the tip into the metal; the body lies back along -axis
+    axes = np.array([[0.0, 0.0, -1.0], [-np.sin(lean), 0.0, -np.cos(lean)], [np.sin(lean), 0.0, -np.cos(lean)]])
+    tips = -CFG.standoff_m * axes  # the tip standoff_m back along the axis from the paint point (0, 0, 0)
+    assert check(tips, axes).tolist() == [True, False, True]
+
+
+def test_a_sharp_edge_is_taken_in_pivot_steps():
+    pts = np.array([[0.0, 0, 0], [0.005, 0, 0], [0.010, 0, 0]])
+    normals = np.array([[0.0, 0, 1], [0.0, 0, 1], [1.0, 0, 0]])
+    p, n = pivots(pts, normals, 10.0)
+    turn = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", n[:-1], n[1:]), -1, 1)))
+    assert len(p) == 2 + 9 and turn.max() <= 10.0 + 1e-9
+    np.testing.assert_allclose(p[[0, 1, -1]], pts)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0)
+    assert np.all(np.diff(p[:, 0]) >= 0), "the tip moves on along the chord while the torch turns"
+    same, _ = pivots(pts, np.tile([0.0, 0, 1], (3, 1)), 10.0)
+    np.testing.assert_array_equal(same, pts)
 
 
 def test_a_blocked_stretch_splits_the_cut_and_is_reported_not_the_whole_branch(kin):

@@ -118,6 +118,18 @@ def test_fk_batch_matches_fk(kin):
         np.testing.assert_allclose(kin.fk_positions(Q, frame), ref[:, :3, 3], atol=1e-12)
 
 
+def test_link_poses_batch_matches_link_poses(kin):
+    links = ["panda_link1", "panda_link4", "panda_link7", "panda_hand", "panda_leftfinger"]
+    Q = np.random.default_rng(5).uniform(kin.lower, kin.upper, (20, kin.dof))
+    P = kin.link_poses_batch(Q, links)
+    assert P.shape == (20, len(links), 4, 4)
+    for q, got in zip(Q, P):
+        np.testing.assert_allclose(got, kin.link_poses(q, links), atol=1e-12)
+    assert kin.link_poses_batch(Q[:0], links).shape == (0, len(links), 4, 4)
+    with pytest.raises(ValueError):
+        kin.link_poses_batch(Q[:, :6], links)
+
+
 def test_jacobian_cam_finite_differences(kin):
     eps = 1e-6
     for q in random_q(kin, 5, 0.1, seed=4):

@@ -520,3 +520,37 @@ def test_contacts_with_the_scene_are_recorded_per_motion(execution):
         assert hits and {h["body"] for h in hits} <= {"object", "paint", "floor"}
         assert any(h["body"] == "object" and h["link"].startswith("panda_") for h in hits), hits
         assert all(h["distance_m"] < 0.05 for h in hits)
+
+
+# ----------------------------------------------------------------------------- the tool
+def test_the_torch_on_the_hand_has_contacts_of_its_own_and_is_never_drawn():
+    """The twin's torch (TwinConfig.tool) is what lets the dry run see the nozzle touch the metal:
+    a tip 3 mm into a plate is a contact of "tool", 5 mm above it none; the camera's picture is
+    the same with or without it."""
+    from sim.config import TwinToolConfig
+    from planners.config import CutPathConfig
+    from planners.cutpath import torch_kinematics
+    from planners.motion.ik_batch import solve_axis_ik_batch
+
+    t = CutPathConfig().torch
+    tool = TwinToolConfig(xyz=list(t.xyz_m), rpy_deg=list(t.rpy_deg), radius_m=t.radius_m, length_m=t.length_m,
+                          nozzle_radius_m=t.nozzle_radius_m, nozzle_length_m=t.nozzle_length_m)
+    plate = make_scene(box([0.3, 0.3, 0.1], [0.5, 0.0, 0.15]))  # top face at z = 0.2
+    with Twin(plate, TwinConfig(execution="teleport", tool=tool)) as twin, \
+            Twin(plate, TwinConfig(execution="teleport")) as bare:
+        pose = look_pose([0.5, 0.0, 0.55], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0])
+        assert np.array_equal(twin.camera.render(pose)[0], bare.camera.render(pose)[0])
+        kin = torch_kinematics(twin.arm.model.urdf_path, CutPathConfig())
+        seen = {}
+        for depth in (0.005, -0.003):
+            Q, ok = solve_axis_ik_batch(kin, np.array([[0.5, 0.0, 0.2 + depth]]), np.array([[0.0, 0.0, -1.0]]),
+                                        HOME_Q[None])
+            assert ok[0]
+            for name, tw in (("tool", twin), ("bare", bare)):
+                tw.arm.reset(HOME_Q)
+                tw.arm.execute(smooth_trajectory(HOME_Q, Q[0], 2.0))
+                seen[name, depth] = {(c["link"], c["body"]) for c in tw.arm.last_motion_contacts}
+        assert seen["tool", 0.005] == set() and seen["bare", -0.003] == set()
+        assert seen["tool", -0.003] == {("tool", "object")}
+    with pytest.raises(ValidationError):
+        TwinToolConfig(xyz=[0, 0, 0.2], radius_m=0.01, length_m=0.1, nozzle_length_m=0.2)

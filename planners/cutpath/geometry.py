@@ -217,6 +217,29 @@ def on_surface(points: np.ndarray, surface: Surface, spacing_m: float) -> tuple[
     return surface.snap(p, n), n
 
 
+def pivots(points: np.ndarray, normals: np.ndarray, max_step_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Poses inserted where the normal turns by more than ``max_step_deg`` between two points (a
+    sharp edge of the metal, a thin rod): the torch turns there in steps, its tip moving on along
+    the chord, so the joints follow the pivot instead of swinging freely between two far-apart
+    configurations. Returns (points, normals) with the inserted ones in order."""
+    n = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    if len(points) < 2:
+        return points, n
+    turn = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", n[:-1], n[1:]), -1.0, 1.0)))
+    steps = np.maximum(np.ceil(turn / max_step_deg).astype(int), 1)  # (K-1,) sub-steps per segment
+    seg = np.repeat(np.arange(len(points) - 1), steps)
+    f = (np.arange(len(seg)) - np.repeat(np.cumsum(steps) - steps, steps)) / steps[seg]  # 0, 1/m, ...
+    p = points[seg] + f[:, None] * (points[seg + 1] - points[seg])
+    th = np.radians(turn)[seg]  # slerp: equal turns per step
+    sin_th = np.sin(th)
+    slerp = sin_th > 1e-6
+    w0 = np.where(slerp, np.sin((1 - f) * th) / np.where(slerp, sin_th, 1.0), 1 - f)
+    w1 = np.where(slerp, np.sin(f * th) / np.where(slerp, sin_th, 1.0), f)
+    v = w0[:, None] * n[seg] + w1[:, None] * n[seg + 1]
+    v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+    return np.vstack([p, points[-1:]]), np.vstack([v, n[-1:]])
+
+
 def tangents(p: np.ndarray, closed: bool = False) -> np.ndarray:
     """Unit travel directions (K,3) by central differences (one-sided at open ends)."""
     if len(p) < 2:

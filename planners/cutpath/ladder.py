@@ -29,6 +29,7 @@ from planners.motion.ik_batch import solve_axis_ik_batch
 from planners.motion.kinematics import Kinematics
 
 IsFree = Callable[[np.ndarray], np.ndarray]
+NozzleFree = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 OUT_OF_REACH, JOINT_LIMITS, COLLISION = "out of reach", "joint limits", "collision"
 SINGULAR, RECONFIGURE = "singular", "reconfigure"
@@ -108,8 +109,10 @@ def _global_seeds(kin: Kinematics, q_start: np.ndarray, count: int, margin: floa
 
 
 def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: np.ndarray, cfg: CutPathConfig,
-                is_free: IsFree | None, max_vel: np.ndarray) -> Ladder:
-    """Runs and gaps along one branch's nominal torch poses (N,4,4) timed by ``times`` (N,)."""
+                is_free: IsFree | None, max_vel: np.ndarray, nozzle_free: NozzleFree | None = None) -> Ladder:
+    """Runs and gaps along one branch's nominal torch poses (N,4,4) timed by ``times`` (N,).
+    ``nozzle_free(tips, axes)``: whether the nozzle is clear of the metal at each tilt (``nozzle.py``);
+    a tilt whose nozzle is not is no rung."""
     N = len(poses)
     D = tilt_directions(cfg)  # (O,3)
     O, S, dof = len(D), cfg.ik_seeds, kin.dof
@@ -146,33 +149,25 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
 
     # nodes: (layer, rung) with rung = o*S + s
     Qf = Q.reshape(N, O * S, dof)
-    valid = ok.reshape(N, O * S) & np.repeat(in_reach, S, axis=1)
+    solved = ok.reshape(N, O * S) & np.repeat(in_reach, S, axis=1)  # the arm holds the torch there
+    clear = np.ones((N, O), dtype=bool) if nozzle_free is None else np.asarray(nozzle_free(tips, axes), dtype=bool)
+    valid = solved & np.repeat(clear, S, axis=1)
     tilt = np.repeat(np.arccos(np.clip(D[:, 2], -1.0, 1.0)), S)  # (O*S,)
     checked = np.zeros_like(valid)
     free = np.ones_like(valid)
 
-    rung_axis = np.repeat(axes, S, axis=1)  # (N, O*S, 3)
+    joinable, motion_cost = _joins(Qf, np.repeat(axes, S, axis=1), cfg)
+    blocked = np.zeros_like(joinable)  # edges whose motion collides
 
     def edges(k: int, usable: np.ndarray) -> np.ndarray:
-        """(R,R) bool: rung i of layer k joins rung j of layer k+1. The joints may move
-        ``max_joint_jump_rad`` plus what turning the torch between the two rungs needs (PIVOT_GAIN
-        per radian): at a sharp corner of the line the torch pivots about its tip, the joints turn
-        with it, and the cut slows down there (``pivot_times``); a jump without such a turn is a
-        change of arm configuration, which needs the torch lifted."""
-        dq = np.abs(Qf[k + 1][None, :, :] - Qf[k][:, None, :])
-        turn = np.arccos(np.clip(rung_axis[k] @ rung_axis[k + 1].T, -1.0, 1.0))
-        good = dq.max(axis=2) <= cfg.max_joint_jump_rad + PIVOT_GAIN * turn
-        if k in blocked:
-            a, b = np.array(blocked[k]).T
-            good[a, b] = False
-        return good & usable[k][:, None] & usable[k + 1][None, :]
+        """(R,R) bool: rung i of layer k joins rung j of layer k+1 (both usable, motion not blocked)."""
+        return joinable[k] & ~blocked[k] & usable[k][:, None] & usable[k + 1][None, :]
 
-    blocked: dict[int, list[tuple[int, int]]] = {}  # edges whose motion collides
-    edge_ok: set = set()  # runs whose motion was found free
+    seg_free: set = set()  # spline segments found free, keyed by their four rungs
     while True:
         usable = valid & free
         runs = _split(N, usable, edges)
-        chosen = [_cheapest(r, usable, edges, Qf, tilt, cfg) for r in runs]
+        chosen = [_cheapest(r, usable, joinable & ~blocked, motion_cost, tilt, cfg) for r in runs]
         # lazy collision check of the chosen rungs; a hit checks its layer and two either side
         hit_layers = set()
         if is_free is not None:
@@ -186,9 +181,9 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
                     hit_layers.update(lay[need][~res].tolist())
         if not hit_layers and is_free is not None:
             # the rungs are free: now the motion between them (joint-space steps of at most 1 degree)
-            hit_edges = _check_motion(runs, chosen, Qf, tips, S, cfg, max_vel, is_free, edge_ok)
+            hit_edges = _check_motion(runs, chosen, Qf, tips, S, cfg, max_vel, is_free, seg_free)
             for k, a, b in hit_edges:
-                blocked.setdefault(k, []).append((a, b))
+                blocked[k, a, b] = True
             if hit_edges:
                 continue
         if not hit_layers:
@@ -205,7 +200,7 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
     usable = valid & free
     # how close the best failed attempt got the tip: beyond 1 cm the point is out of the arm's
     # reach (with its joint limits), within it the limits or the axis stop it
-    lost = ~valid.any(axis=1)
+    lost = ~solved.any(axis=1)
     near_miss = np.zeros(N, dtype=bool)
     if lost.any():
         tries = Qf[lost].reshape(-1, dof)
@@ -215,9 +210,9 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
     for k in range(N):  # a reason per layer, from whole-layer masks
         if usable[k].any():
             out.layer_reason.append("")
-        elif not in_reach[k].any() or (not valid[k].any() and not near_miss[k]):
+        elif not in_reach[k].any() or (not solved[k].any() and not near_miss[k]):
             out.layer_reason.append(OUT_OF_REACH)
-        elif valid[k].any():
+        elif solved[k].any():  # held there, but the arm, the torch or its nozzle touches
             out.layer_reason.append(COLLISION)
         else:
             out.layer_reason.append(JOINT_LIMITS)
@@ -234,6 +229,25 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
                             pivot_times(tips[lay, o], q, cfg.travel_speed_mps, max_vel)))
     out.gaps = _gaps(N, runs, out.layer_reason)
     return out
+
+
+def _joins(Qf: np.ndarray, rung_axis: np.ndarray, cfg: CutPathConfig) -> tuple[np.ndarray, np.ndarray]:
+    """For every pair of consecutive layers, (N-1,R,R): may rung i of layer k join rung j of layer
+    k+1, and the joint motion between them (squared, the search's cost). The joints may move
+    ``max_joint_jump_rad`` plus what turning the torch between the two rungs needs (PIVOT_GAIN per
+    radian): at a sharp corner of the line the torch pivots about its tip, the joints turn with it,
+    and the cut slows down there (``pivot_times``); a jump without such a turn is a change of arm
+    configuration, which needs the torch lifted. Computed once: the lazy search asks for it often."""
+    cos = np.einsum("kid,kjd->kij", rung_axis[:-1], rung_axis[1:])
+    limit = cfg.max_joint_jump_rad + PIVOT_GAIN * np.arccos(np.clip(cos, -1.0, 1.0))
+    jump = np.zeros_like(limit)
+    cost = np.zeros_like(limit)
+    for j in range(Qf.shape[2]):  # per joint: keeps the temporaries at (N-1,R,R)
+        d = Qf[1:, None, :, j] - Qf[:-1, :, None, j]
+        np.maximum(jump, np.abs(d), out=jump)  # NaN (no solution) stays NaN: never joins
+        cost += d * d
+    with np.errstate(invalid="ignore"):
+        return jump <= limit, cost
 
 
 def pivot_times(points: np.ndarray, q: np.ndarray, travel_speed: float, max_vel: np.ndarray) -> np.ndarray:
@@ -281,15 +295,14 @@ def every_degree(Q: np.ndarray) -> np.ndarray:
 
 
 def _check_motion(runs, chosen, Qf: np.ndarray, tips: np.ndarray, S: int, cfg: CutPathConfig, max_vel,
-                  is_free: IsFree, known_ok: set) -> list[tuple[int, int, int]]:
+                  is_free: IsFree, known_free: set) -> list[tuple[int, int, int]]:
     """Collision check of the motion the cut will execute along each chosen path (the timed
     spline, a sample per degree of joint travel), in one call; returns the (layer, rung, next
-    rung) edges during which it collides. Runs found free are remembered in ``known_ok``."""
+    rung) edges during which it collides. The spline between layers k and k+1 depends on rungs
+    k-1 .. k+2 only (their slopes and times), so a segment found free under those four rungs is
+    remembered in ``known_free`` and not checked again when the search changes the path elsewhere."""
     samples, owner = [], []
     for (first, last), rungs in zip(runs, chosen):
-        key = (first, last, rungs.tobytes())
-        if key in known_ok:
-            continue
         lay = np.arange(first, last + 1)
         q = Qf[lay, rungs]
         t = pivot_times(tips[lay, rungs // S], q, cfg.travel_speed_mps, max_vel)
@@ -297,14 +310,17 @@ def _check_motion(runs, chosen, Qf: np.ndarray, tips: np.ndarray, S: int, cfg: C
         Q = cut_spline(t, q)(tt)
         keep = every_degree(Q)
         seg = np.clip(np.searchsorted(t, tt[keep], side="right") - 1, 0, len(t) - 2)
-        samples.append(Q[keep])
-        owner += [(key, first + int(k), int(rungs[k]), int(rungs[k + 1])) for k in seg]
-    if not samples:
+        padded = np.concatenate([[-1], rungs, [-1]])  # run ends: no neighbour
+        keys = [(first + int(k), *padded[k:k + 4].tolist()) for k in range(len(rungs) - 1)]
+        todo = np.array([keys[k] not in known_free for k in seg], dtype=bool)
+        samples.append(Q[keep][todo])
+        owner += [(keys[k], first + int(k), int(rungs[k]), int(rungs[k + 1])) for k in seg[todo]]
+    if not owner:
         return []
     ok = _free(is_free, np.vstack(samples))
     bad = {(k, a, b) for (_, k, a, b), good in zip(owner, ok) if not good}
-    hit_runs = {o[0] for o, good in zip(owner, ok) if not good}
-    known_ok.update({o[0] for o in owner} - hit_runs)
+    hit = {o[0] for o, good in zip(owner, ok) if not good}
+    known_free.update({o[0] for o in owner} - hit)
     return sorted(bad)
 
 
@@ -341,25 +357,21 @@ def _split(N: int, usable: np.ndarray, edges) -> list[tuple[int, int]]:
     return runs
 
 
-def _cheapest(run: tuple[int, int], usable, edges, Qf, tilt, cfg) -> np.ndarray:
+def _cheapest(run: tuple[int, int], usable: np.ndarray, joins: np.ndarray, motion_cost: np.ndarray,
+              tilt: np.ndarray, cfg: CutPathConfig) -> np.ndarray:
     """Rung per layer of the cheapest path through the run: Dijkstra on the layered graph from a
     virtual source before its first layer to a virtual sink after its last."""
     first, last = run
     L, R = last - first + 1, usable.shape[1]
     node_cost = cfg.tilt_cost_weight * tilt ** 2  # (R,)
-    rows, cols, w = [], [], []
     src, sink = L * R, L * R + 1
-    start = np.flatnonzero(usable[first])
-    rows.append(np.full(len(start), src)), cols.append(start), w.append(node_cost[start] + 1e-9)
-    for i in range(L - 1):  # one sparse block per layer pair
-        k = first + i
-        a, b = np.nonzero(edges(k, usable))
-        dq = Qf[k + 1, b] - Qf[k, a]
-        rows.append(i * R + a), cols.append((i + 1) * R + b)
-        w.append(np.einsum("ij,ij->i", dq, dq) + node_cost[b] + 1e-9)
-    end = np.flatnonzero(usable[last])
-    rows.append((L - 1) * R + end), cols.append(np.full(len(end), sink)), w.append(np.full(len(end), 1e-9))
-    G = coo_matrix((np.concatenate(w), (np.concatenate(rows), np.concatenate(cols))), shape=(L * R + 2,) * 2).tocsr()
+    e = joins[first:last] & usable[first:last, :, None] & usable[first + 1:last + 1, None, :]
+    i, a, b = np.nonzero(e)
+    start, end = np.flatnonzero(usable[first]), np.flatnonzero(usable[last])
+    rows = np.concatenate([np.full(len(start), src), i * R + a, (L - 1) * R + end])
+    cols = np.concatenate([start, (i + 1) * R + b, np.full(len(end), sink)])
+    w = np.concatenate([node_cost[start], motion_cost[first + i, a, b] + node_cost[b], np.zeros(len(end))]) + 1e-9
+    G = coo_matrix((w, (rows, cols)), shape=(L * R + 2,) * 2).tocsr()
     dist, pred = dijkstra(G, directed=True, indices=src, return_predecessors=True)
     if not np.isfinite(dist[sink]):
         raise RuntimeError("a run found by the split has no path: the graph changed under it")

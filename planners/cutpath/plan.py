@@ -10,9 +10,10 @@ import numpy as np
 from planners.clouds import Cloud
 from planners.cutpath import _checks
 from planners.cutpath.config import CutPathConfig
-from planners.cutpath.geometry import Surface, arc_length, on_surface, smooth_resample, torch_poses
+from planners.cutpath.geometry import Surface, arc_length, on_surface, pivots, smooth_resample, torch_poses
 from planners.cutpath.graph import END, JUNCTION, LOOP, drawing_graph, through_junctions
 from planners.cutpath.ladder import RECONFIGURE, cut_spline, every_degree, plan_ladder, tilt_directions
+from planners.cutpath.nozzle import NozzleCheck
 from planners.cutpath.pieces import short_pieces
 from planners.cutpath.model import OK, Branch, CutPath, Gap
 from planners.motion.ik_batch import solve_axis_ik_batch
@@ -25,6 +26,7 @@ from planners.motion.limits import (
     PANDA_Q_MAX,
     PANDA_Q_MIN,
 )
+from planners.motion.roadmap import roadmap_route
 from planners.motion.trajectory import JointPath, plan_through
 
 IsFree = Callable[[np.ndarray], np.ndarray]
@@ -77,13 +79,13 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | No
         closed = a == b and g.kinds[a] == LOOP
         pts = smooth_resample(poly, cfg.spacing_m, cfg.smoothing_voxels * cfg.voxel_m, closed,
                               corner_scale_m=cfg.corner_scale_m, corner_deg=cfg.corner_deg, paint=d_xyz)
-        pts, normals = on_surface(pts, surf, cfg.spacing_m)
+        pts, normals = pivots(*on_surface(pts, surf, cfg.spacing_m), cfg.pivot_step_deg)
         poses = torch_poses(pts, normals, cfg.standoff_m, closed)
         branches.append(Branch(pts, normals, poses, np.full(len(pts), cfg.travel_speed_mps), label[a], label[b], closed))
     pieces, ignored = short_pieces(d_xyz, g.branches, surf, voxel_m=cfg.voxel_m, spacing_m=cfg.spacing_m,
                                    bridge_max_m=cfg.bridge_max_m, min_piece_m=cfg.min_piece_m)
     for j, piece in enumerate(pieces):  # a broken line: a short cut through each piece of paint
-        pts, normals = on_surface(piece.line, surf, cfg.spacing_m)
+        pts, normals = pivots(*on_surface(piece.line, surf, cfg.spacing_m), cfg.pivot_step_deg)
         if len(pts) < 2:
             ignored += 1
             continue
@@ -104,12 +106,12 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | No
 
 
 
-def _stand_off(kin: Kinematics, T: np.ndarray, q_near: np.ndarray, cfg: CutPathConfig,
-               is_free: IsFree | None, distances: tuple[float, ...] | None = None) -> np.ndarray | None:
-    """A configuration holding the torch ``approach_m`` back from the cut's first (or last) pose,
-    pointing at it, so that the torch plunges straight in: along the cut's own torch axis first,
-    then along the other axes of the tilt cone, then half as far back; the free solution nearest
-    to ``q_near`` in joint space. None when there is none."""
+def _stand_offs(kin: Kinematics, T: np.ndarray, q_near: np.ndarray, cfg: CutPathConfig,
+                is_free: IsFree | None, distances: tuple[float, ...] | None = None):
+    """Configurations holding the torch ``approach_m`` back from the cut's first (or last) pose,
+    pointing at it, so that the torch plunges straight in, best first: along the cut's own torch
+    axis, then along the other axes of the tilt cone, then half as far back; the free solutions
+    nearest to ``q_near`` in joint space first."""
     D = tilt_directions(cfg)
     axes = np.einsum("ij,oj->oi", T[:3, :3], D)
     tip = T[:3, 3]
@@ -117,13 +119,16 @@ def _stand_off(kin: Kinematics, T: np.ndarray, q_near: np.ndarray, cfg: CutPathC
         Q, ok = solve_axis_ik_batch(kin, tip - dist * axes, axes, np.tile(q_near, (len(D), 1)),
                                     margin=cfg.ik_margin_rad,
                                     x_axes=None if cfg.free_roll else np.tile(T[:3, 0], (len(D), 1)))
-        if not ok.any():
-            continue
         cand = np.flatnonzero(ok)
         cand = cand[_free(is_free, Q[cand])]
-        if len(cand):
-            return Q[cand[np.argmin(np.abs(Q[cand] - q_near).max(axis=1))]].copy()
-    return None
+        for k in cand[np.argsort(np.abs(Q[cand] - q_near).max(axis=1), kind="stable")]:
+            yield Q[k].copy()
+
+
+def _stand_off(kin: Kinematics, T: np.ndarray, q_near: np.ndarray, cfg: CutPathConfig,
+               is_free: IsFree | None, distances: tuple[float, ...] | None = None) -> np.ndarray | None:
+    """The best of ``_stand_offs``, None when there is none."""
+    return next(_stand_offs(kin, T, q_near, cfg, is_free, distances), None)
 
 
 def _air_routes(kin: Kinematics, q_from: np.ndarray, q_to: np.ndarray, cfg: CutPathConfig, is_free: IsFree | None,
@@ -143,6 +148,15 @@ def _air_routes(kin: Kinematics, q_from: np.ndarray, q_to: np.ndarray, cfg: CutP
             yield [q_from, up_from, park_q, up_to, q_to]
 
 
+def _with_nozzle(is_free: IsFree | None, nozzle_free, kin: Kinematics) -> IsFree:
+    """is_free that also wants the nozzle clear (``nozzle.NozzleCheck``) at the torch pose of each row."""
+    def check(Q: np.ndarray) -> np.ndarray:
+        T = kin.fk_batch(Q)
+        ok = np.asarray(nozzle_free(T[:, :3, 3], T[:, :3, 2]), dtype=bool)
+        return ok & _free(is_free, Q) if is_free is not None else ok
+    return check
+
+
 def _free(is_free: IsFree | None, Q: np.ndarray) -> np.ndarray:
     if is_free is None or len(Q) == 0:
         return np.ones(len(Q), dtype=bool)
@@ -150,6 +164,12 @@ def _free(is_free: IsFree | None, Q: np.ndarray) -> np.ndarray:
     if out.shape != (len(Q),):
         raise ValueError(f"is_free must return shape ({len(Q)},), got {out.shape}")
     return out.astype(bool)
+
+
+def _motion_free(is_free: IsFree | None, Q: np.ndarray) -> bool:
+    """A dense joint motion is clear: checked at every degree of joint travel (``every_degree``),
+    the resolution the cut's own motion is checked at, not at every control sample."""
+    return bool(_free(is_free, Q[every_degree(Q)]).all())
 
 
 def _cut_trajectory(b: Branch, dt: float) -> JointPath:
@@ -163,10 +183,10 @@ def _cut_trajectory(b: Branch, dt: float) -> JointPath:
 
 
 def _runs_of(b: Branch, index: int, kin: Kinematics, q_here: np.ndarray, cfg: CutPathConfig,
-             is_free: IsFree | None, max_vel: np.ndarray) -> tuple[list[Branch], list[Gap]]:
+             is_free: IsFree | None, max_vel: np.ndarray, nozzle_free=None) -> tuple[list[Branch], list[Gap]]:
     """The ladder graph along one branch: its cuttable runs as branches of their own (joint
     solutions chosen, poses tilted as chosen) and its uncut gaps with their reasons."""
-    lad = plan_ladder(kin, b.poses, b.times, q_here, cfg, is_free, max_vel)
+    lad = plan_ladder(kin, b.poses, b.times, q_here, cfg, is_free, max_vel, nozzle_free)
     n = len(b)
     s = arc_length(b.points)
     runs = []
@@ -196,7 +216,7 @@ def _runs_of(b: Branch, index: int, kin: Kinematics, q_here: np.ndarray, cfg: Cu
 def plan_cut(path: CutPath, kin: Kinematics, q_start: np.ndarray, cfg: CutPathConfig | None = None, *,
              is_free: IsFree | None = None, max_vel: np.ndarray = PANDA_MAX_VELOCITY,
              max_acc: np.ndarray = PANDA_MAX_ACCELERATION, max_jerk: np.ndarray = PANDA_MAX_JERK,
-             park_q: np.ndarray | None = None) -> CutPath:
+             park_q: np.ndarray | None = None, nozzle_free=None) -> CutPath:
     """Joint motion for the drawing, in place (and returned). Each branch goes through the ladder
     graph (``ladder.py``: the torch within its tilt tolerances, batched IK, lazy collision checks,
     the cheapest continuous joint path) and becomes its maximal cuttable runs; ``path.branches``
@@ -211,6 +231,8 @@ def plan_cut(path: CutPath, kin: Kinematics, q_start: np.ndarray, cfg: CutPathCo
             collision, and an approach or retract through one an issue.
         max_vel, max_acc, max_jerk: the arm's limits (dof,).
         park_q: a configuration clear above the cell: an air move that collides goes through it.
+        nozzle_free: optional (tips (...,3), axes (...,3)) -> (...) bool: the nozzle is clear of the
+            metal there (``nozzle.NozzleCheck`` on the scanned surface).
 
     Raises:
         ValueError: malformed q_start or limits, q_start outside kin's limits, is_free returning
@@ -228,6 +250,8 @@ def plan_cut(path: CutPath, kin: Kinematics, q_start: np.ndarray, cfg: CutPathCo
         if a.shape != (kin.dof,) or not np.all(np.isfinite(a)) or not np.all(a > 0):
             raise ValueError(f"{name} must be {kin.dof} finite positive values, got {v!r}")
         lim[name] = a
+    if nozzle_free is not None:  # every configuration checked (cut, pivots, air moves) keeps its nozzle off the metal
+        is_free = _with_nozzle(is_free, nozzle_free, kin)
     path.drawing_length_m = path.length_m
     todo = [(i, b) for i, b in enumerate(path.branches) if len(b) > 0]
     runs_out: list[Branch] = []
@@ -244,7 +268,7 @@ def plan_cut(path: CutPath, kin: Kinematics, q_start: np.ndarray, cfg: CutPathCo
             path.gaps.append(Gap(i, b.points[0].copy(), b.points[-1].copy(), 0.0, "too short",
                                  "a single torch pose is not a cut"))
             continue
-        runs, gaps = _runs_of(b, i, kin, q_here, cfg, is_free, lim["max_vel"])
+        runs, gaps = _runs_of(b, i, kin, q_here, cfg, is_free, lim["max_vel"], nozzle_free)
         path.gaps += gaps
         for rb in runs:
             _time_run(rb, kin, q_here, cfg, is_free, lim, park_q)
@@ -262,21 +286,38 @@ def _time_run(b: Branch, kin: Kinematics, q_here: np.ndarray, cfg: CutPathConfig
     b.cut = _cut_trajectory(b, cfg.dt_s)
     if np.any(np.abs(b.cut.velocities) > lim["max_vel"] + 1e-9):
         b.issues.append("the timed cut exceeds a joint velocity limit")
-    if not _free(is_free, b.cut.positions[every_degree(b.cut.positions)]).all():  # between the rungs, pivots included
+    if not _motion_free(is_free, b.cut.positions):  # between the rungs, pivots included
         b.issues.append("the cut collides between its poses")
-    b.approach_q = _stand_off(kin, b.poses[0], b.q[0], cfg, is_free)
-    b.retract_q = _stand_off(kin, b.poses[-1], b.q[-1], cfg, is_free)
     motion = dict(speed_factor=cfg.approach_speed_factor, dt=cfg.dt_s, lower=kin.lower, upper=kin.upper)
 
     def timed(waypoints: list[np.ndarray]) -> JointPath:
         return plan_through(np.stack(waypoints), lim["max_vel"], lim["max_acc"], lim["max_jerk"], **motion)
 
+    def sampled(a: np.ndarray, b_: np.ndarray) -> np.ndarray | None:
+        """The timed motion a -> b at the resolution it is checked at (None: it leaves the limits)."""
+        try:
+            Q = timed([a, b_]).positions
+        except ValueError:
+            return None
+        return Q[every_degree(Q)]
+
     def clear(waypoints: list[np.ndarray]) -> bool:
         try:
-            return bool(_free(is_free, timed(waypoints).positions).all())
+            return _motion_free(is_free, timed(waypoints).positions)
         except ValueError:
             return False
 
+    def stand_off(k: int) -> np.ndarray | None:
+        """The best stand-off at pose k (0: approach, -1: retract) whose plunge to or lift from
+        the cut is clear, else the best one (the issue is then reported below)."""
+        best = None
+        for q in _stand_offs(kin, b.poses[k], b.q[k], cfg, is_free):
+            if clear([q, b.q[k]]):
+                return q
+            best = q if best is None else best
+        return best
+
+    b.approach_q, b.retract_q = stand_off(0), stand_off(-1)
     for what, goal in (("approach", b.approach_q), ("retract", b.retract_q)):
         if goal is None:
             b.issues.append(f"{what} pose unreachable: no collision-free configuration holds the torch "
@@ -291,12 +332,16 @@ def _time_run(b: Branch, kin: Kinematics, q_here: np.ndarray, cfg: CutPathConfig
                     if all(clear([u, v]) for u, v in zip(via[:-1], via[1:])):
                         waypoints = via + [b.q[0]]
                         break
+                else:  # none of the simple routes: a roadmap through the free space
+                    via = roadmap_route(q_here, goal, lambda Q: _free(is_free, Q), sampled, kin.lower, kin.upper)
+                    if via is not None:
+                        waypoints = via + [b.q[0]]
         try:
             jp = timed(waypoints)
         except ValueError as exc:  # e.g. the time-optimal motion overshoots a joint limit
             b.issues.append(f"{what}: {exc}")
             continue
-        if not _free(is_free, jp.positions).all():
+        if not _motion_free(is_free, jp.positions):
             part = "the plunge to the cut" if what == "approach" and clear(waypoints[:-1]) else (
                 "the air move" if what == "approach" else "the lift off the cut")
             b.issues.append(f"{what} collides ({part})")
@@ -306,7 +351,9 @@ def _time_run(b: Branch, kin: Kinematics, q_here: np.ndarray, cfg: CutPathConfig
 def plan_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | None, kin: Kinematics,
                   q_start: np.ndarray, cfg: CutPathConfig | None = None, *, viewpoint: np.ndarray | None = None,
                   is_free: IsFree | None = None, **limits) -> CutPath:
-    """build_cut_path then plan_cut."""
+    """build_cut_path then plan_cut, the nozzle kept ``nozzle_margin_m`` off the surface cloud
+    (the drawing's own points when there is no surface)."""
     cfg = cfg or CutPathConfig()
+    metal = _xyz_origin(drawing if surface is None else surface, "surface")[0]
     return plan_cut(build_cut_path(drawing, surface, cfg, viewpoint=viewpoint), kin, q_start, cfg,
-                    is_free=is_free, **limits)
+                    is_free=is_free, nozzle_free=NozzleCheck(metal, cfg.torch, cfg.nozzle_margin_m), **limits)

@@ -413,6 +413,10 @@ class RobotCollisionModel:
         """(P, 4, 4) pose of each part's frame (= its link's frame) at q."""
         return self.link_poses(q)[self._part_link]
 
+    def part_poses_batch(self, Q: np.ndarray) -> np.ndarray:
+        """(N, P, 4, 4): ``part_poses`` for every row of Q (N, dof)."""
+        return self.kin.link_poses_batch(Q, self.links)[:, self._part_link]
+
     def on_robot(self, points: np.ndarray, q: np.ndarray, pad_m: float = 0.02) -> np.ndarray:
         """Which points (N, 3), base frame, lie on the robot at q (inside a part's hull grown by
         ``pad_m``): the camera sees its own arm now and then, and those returns must not become
@@ -656,6 +660,9 @@ class CollisionChecker:
         lo = np.stack([v.min(0) for v, _ in inflated])
         hi = np.stack([v.max(0) for v, _ in inflated])
         self._box_c, self._box_h = (lo + hi) / 2, (hi - lo) / 2
+        self._sphere_c = self._box_c  # a ball round each inflated part, for the scene's distance map
+        self._sphere_r = np.array([np.linalg.norm(v - c, axis=1).max() for (v, _), c in zip(inflated, self._box_c)])
+        self._scene_dist = None
         self._scene: fcl.CollisionObject | None = None
         self._scene_lo = self._scene_hi = None
         self.scene_voxels = 0
@@ -698,6 +705,7 @@ class CollisionChecker:
         data, n = _octree_data(ijk + _KEY_OFFSET)
         tree = fcl.OcTree(voxel, data)
         self._scene = fcl.CollisionObject(tree, fcl.Transform(origin))
+        self._scene_ijk, self._scene_voxel, self._scene_dist = ijk - ijk.min(axis=0), voxel, None
         self._scene_lo = origin + ijk.min(axis=0) * voxel
         self._scene_hi = origin + (ijk.max(axis=0) + 1) * voxel
         self.scene_voxels = n
@@ -722,6 +730,75 @@ class CollisionChecker:
 
     def in_collision(self, q: np.ndarray) -> bool:
         return self.check(q) is not None
+
+    def free(self, Q: np.ndarray) -> np.ndarray:
+        """(N,) bool: row k of Q (N, dof) is clear of floor, static boxes, scene and self, exactly as
+        ``not in_collision(Q[k])``. The broad phase runs for all rows at once in numpy (forward
+        kinematics, the floor, part boxes against the scene's box, the scene's distance map against
+        each part's bounding sphere, bounding spheres of self pairs); fcl sees only what is left."""
+        Q = self._rows(Q)
+        robot = self.robot
+        P = robot.part_poses_batch(Q)  # (N, P, 4, 4)
+        Z = P[:, self._floor_part, 2]  # (N, V, 4): the z row of each vertex's part pose
+        z = np.einsum("vj,nvj->nv", self._floor_v, Z[..., :3]) + Z[..., 3]
+        ok = np.minimum.reduceat(z, self._floor_start, axis=1).min(axis=1) >= self.cfg.floor_margin_m
+        if self._scene is not None or self._static:
+            Pm = P[:, self._moving]
+            R = Pm[..., :3, :3]
+            c = np.einsum("npij,pj->npi", R, self._box_c) + Pm[..., :3, 3]
+            h = np.einsum("npij,pj->npi", np.abs(R), self._box_h)
+            for _, box, lo, hi in self._static:
+                cand = ok[:, None] & np.all((c + h >= lo) & (c - h <= hi), axis=2)
+                ok &= ~self._narrow(cand, Pm, box)
+            if self._scene is not None:
+                cand = ok[:, None] & np.all((c + h >= self._scene_lo) & (c - h <= self._scene_hi), axis=2)
+                if cand.any():
+                    centre = np.einsum("npij,pj->npi", R, self._sphere_c) + Pm[..., :3, 3]
+                    cand &= self._scene_distance(centre) <= self._sphere_r
+                ok &= ~self._narrow(cand, Pm, self._scene)
+        if self.cfg.self_collision and len(robot.self_pairs) and ok.any():
+            rows = np.flatnonzero(ok)
+            c = np.einsum("npij,pj->npi", P[rows, :, :3, :3], robot._centre) + P[rows, :, :3, 3]
+            i, j = robot.self_pairs[:, 0], robot.self_pairs[:, 1]
+            near = np.linalg.norm(c[:, i] - c[:, j], axis=2) <= robot._radius[i] + robot._radius[j]
+            for r, k in zip(*np.nonzero(near)):  # narrow phase: the few pairs whose spheres meet
+                if not ok[rows[r]]:
+                    continue
+                a, b = int(i[k]), int(j[k])
+                _place(robot._raw[a], P[rows[r], a])
+                _place(robot._raw[b], P[rows[r], b])
+                if fcl.collide(robot._raw[a], robot._raw[b]) > 0:
+                    ok[rows[r]] = False
+        return ok
+
+    def _narrow(self, cand: np.ndarray, Pm: np.ndarray, other: fcl.CollisionObject) -> np.ndarray:
+        """(N,) bool: some candidate (row, moving part) of ``cand`` (N, M) touches ``other`` (fcl)."""
+        hit = np.zeros(len(cand), dtype=bool)
+        for n, k in zip(*np.nonzero(cand)):  # narrow phase only: no batched call in fcl
+            if hit[n]:
+                continue
+            obj = self._inflated[k]
+            _place(obj, Pm[n, k])
+            hit[n] = fcl.collide(obj, other) > 0
+        return hit
+
+    def _scene_distance(self, points: np.ndarray) -> np.ndarray:
+        """Lower bound on the distance from each point (..., 3) to the scene's voxels (their cubes),
+        from a distance map of the scene's lattice built on first use (the octree has none)."""
+        if self._scene_dist is None:
+            from scipy.ndimage import distance_transform_edt
+            occ = np.ones(tuple(self._scene_ijk.max(axis=0) + 1), dtype=bool)
+            occ[tuple(self._scene_ijk.T)] = False
+            self._scene_dist = distance_transform_edt(occ) * self._scene_voxel  # centre to nearest centre
+        v = self._scene_voxel
+        f = (points - self._scene_lo) / v - 0.5
+        shape = np.array(self._scene_dist.shape)
+        idx = np.clip(np.rint(f), 0, shape - 1).astype(np.intp)
+        outside = np.linalg.norm((f - idx) * v, axis=-1)  # how far beyond the map's edge (0 within)
+        inside_d = self._scene_dist[idx[..., 0], idx[..., 1], idx[..., 2]]
+        # nearest cell centre: at most half a cell's diagonal from the point's cell centre; a cube
+        # reaches half a diagonal beyond its centre
+        return np.maximum(inside_d - outside, outside) - np.sqrt(3.0) * v
 
     def check_all(self, Q: np.ndarray) -> Collision | None:
         """Report of the first colliding row of Q (T, dof), with ``index`` set; None if all are free."""

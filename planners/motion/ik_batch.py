@@ -10,6 +10,9 @@ import numpy as np
 from .ik import MAX_STEP, ROT_WEIGHT, _DAMP0, _DAMP_K, _shrunk_limits
 from .kinematics import Kinematics
 
+#: iterations without progress after which a target is given up
+STALL = 20
+
 
 def _chain(kin: Kinematics, Q: np.ndarray, frame: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Tool pose (B,4,4), joint axes (B,dof,3) and joint origins (B,dof,3) in the base frame."""
@@ -65,7 +68,9 @@ def solve_axis_ik_batch(kin: Kinematics, positions: np.ndarray, axes: np.ndarray
     Q = np.clip(Q, lo, hi)
     ok = np.zeros(len(Q), dtype=bool)
     active = np.arange(len(Q))
-    for _ in range(max_iter + 1):
+    best = np.full(len(Q), np.inf)  # lowest error so far, and the iteration it was reached
+    best_at = np.zeros(len(Q), dtype=np.int64)
+    for it in range(max_iter + 1):
         if len(active) == 0:
             break
         q = Q[active]
@@ -82,9 +87,13 @@ def solve_axis_ik_batch(kin: Kinematics, positions: np.ndarray, axes: np.ndarray
                          np.where((ang > 1.0)[:, None], R[:, :, 0] * ang[:, None], 0.0))
         else:  # rotation vector of R_t R^T
             w, ang = _log3(Rt[active] @ R.transpose(0, 2, 1))
+        err = np.linalg.norm(e_pos, axis=1) + ROT_WEIGHT * ang
+        better = err < 0.99 * best[active]
+        best[active[better]], best_at[active[better]] = err[better], it
         done = (np.linalg.norm(e_pos, axis=1) < tol_pos) & (ang < tol_ang)
         ok[active[done]] = True
-        keep = ~done
+        # a target whose error has not fallen 1 % in STALL iterations is stuck (out of reach, on a limit)
+        keep = ~done & (it - best_at[active] < STALL)
         if not keep.any():
             break
         active, q, p, R, ax, org, e_pos, w = (a[keep] for a in (active, q, p, R, ax, org, e_pos, w))

@@ -225,31 +225,63 @@ class Kinematics:
                     self._chain_ok = False
             chains[name] = (steps, f.placement.homogeneous.copy())
         self._chains = chains
+        # every joint in tree order (parents first), for the link poses of many configurations at once
+        self._tree = []
+        for j in range(1, model.njoints):
+            jm = model.joints[j]
+            short = jm.shortname()
+            if jm.nq != 1 or jm.idx_q not in self._idx:
+                self._chain_ok = False
+                break
+            iq = int(np.nonzero(self._idx == jm.idx_q)[0][0])
+            axis = _AXES.get(short[-1]) if short[-2:-1] in ("R", "P") and short[-1] in _AXES else (
+                np.asarray(jm.axis, dtype=np.float64).copy() if "Unaligned" in short else None)
+            if axis is None:
+                self._chain_ok = False
+                break
+            kind = "P" if short.startswith("JointModelP") else "R"
+            self._tree.append((j, model.parents[j], model.jointPlacements[j].homogeneous.copy(), kind, axis, iq))
 
     def fk_batch(self, Q: np.ndarray, frame: str = "cam") -> np.ndarray:
         """T_base_<frame> for every row of Q (N, dof) -> (N, 4, 4); vectorized over N in numpy."""
         self._frame_id(frame)
-        Q = np.asarray(Q, dtype=np.float64)
-        if Q.ndim != 2 or Q.shape[1] != self.dof:
-            raise ValueError(f"Q must have shape (N, {self.dof}), got {Q.shape}")
-        if not np.all(np.isfinite(Q)):
-            raise ValueError("Q contains NaN or inf")
+        Q = self._rows(Q)
         n = Q.shape[0]
         if not self._chain_ok:  # exotic joint types: fall back to one pinocchio call per row
             return np.stack([self.fk(q, frame) for q in Q]) if n else np.empty((0, 4, 4))
         steps, F = self._chains[frame]
         T = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
         for M, kind, axis, iq in steps:
-            J = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
-            x = Q[:, iq]
-            if kind == "R":  # Rodrigues, vectorized
-                K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-                s, c = np.sin(x)[:, None, None], np.cos(x)[:, None, None]
-                J[:, :3, :3] = np.eye(3) + s * K + (1 - c) * (K @ K)
-            else:
-                J[:, :3, 3] = x[:, None] * axis
-            T = T @ M @ J
+            T = T @ M @ _joint_motion(kind, axis, Q[:, iq])
         return T @ F
+
+    def link_poses_batch(self, Q: np.ndarray, links: Sequence[str]) -> np.ndarray:
+        """``link_poses`` for every row of Q (N, dof) -> (N, len(links), 4, 4), vectorized over N: a
+        collision check of a whole motion needs every link at every sample."""
+        Q = self._rows(Q)
+        key = tuple(links)
+        ids = self._link_ids.get(key)
+        if ids is None:
+            ids = self._link_ids[key] = [self.link_frame_id(n) for n in key]
+        n = len(Q)
+        if not self._chain_ok:
+            return np.stack([self.link_poses(q, links) for q in Q]) if n else np.empty((0, len(ids), 4, 4))
+        T = {0: np.broadcast_to(np.eye(4), (n, 4, 4))}
+        for j, parent, M, kind, axis, iq in self._tree:  # a handful of joints, each vectorized over N
+            T[j] = T[parent] @ M @ _joint_motion(kind, axis, Q[:, iq])
+        frames = self.model.frames
+        out = np.empty((n, len(ids), 4, 4))
+        for k, fid in enumerate(ids):
+            out[:, k] = T[frames[fid].parentJoint] @ frames[fid].placement.homogeneous
+        return out
+
+    def _rows(self, Q: np.ndarray) -> np.ndarray:
+        Q = np.asarray(Q, dtype=np.float64)
+        if Q.ndim != 2 or Q.shape[1] != self.dof:
+            raise ValueError(f"Q must have shape (N, {self.dof}), got {Q.shape}")
+        if not np.all(np.isfinite(Q)):
+            raise ValueError("Q contains NaN or inf")
+        return Q
 
     def fk_positions(self, Q: np.ndarray, frame: str = "cam") -> np.ndarray:
         """Origins of <frame> in the base frame for every row of Q (N, dof) -> (N, 3)."""
@@ -285,3 +317,15 @@ class Kinematics:
                 iq = int(np.nonzero(self._idx == model.joints[j].idx_q)[0][0])
                 radius += float(max(abs(self.lower[iq]), abs(self.upper[iq])))
         return np.array(center, dtype=np.float64), radius
+
+
+def _joint_motion(kind: str, axis: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) motion of a 1-DOF joint at values x (N,): Rodrigues for "R", a shift for "P"."""
+    J = np.broadcast_to(np.eye(4), (len(x), 4, 4)).copy()
+    if kind == "R":
+        K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        s, c = np.sin(x)[:, None, None], np.cos(x)[:, None, None]
+        J[:, :3, :3] = np.eye(3) + s * K + (1 - c) * (K @ K)
+    else:
+        J[:, :3, 3] = x[:, None] * axis
+    return J
