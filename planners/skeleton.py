@@ -26,6 +26,15 @@ def voxelize(xyz: np.ndarray, voxel: float, pad: int = 2) -> tuple[np.ndarray, n
     return vol, lo
 
 
+def _cells(xyz: np.ndarray, voxel: float, lo: np.ndarray, shape: tuple) -> np.ndarray:
+    """Boolean volume of ``shape`` (corner cell ``lo``) marking the cells that hold a point."""
+    ijk = np.floor(np.asarray(xyz, dtype=np.float64) / voxel).astype(np.int64) - lo
+    ijk = ijk[np.all((ijk >= 0) & (ijk < np.asarray(shape)), axis=1)]
+    vol = np.zeros(shape, dtype=bool)
+    vol[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    return vol
+
+
 def skeleton_graph(skel: np.ndarray) -> tuple[np.ndarray, "coo_matrix"]:
     """Skeleton voxels (N,3) and their 26-neighbourhood graph, edges weighted by length in voxels."""
     nodes = np.argwhere(skel)
@@ -82,19 +91,29 @@ def _span_score(vol: np.ndarray, skel: np.ndarray) -> float:
     return float(diag(np.argwhere(skel), lab).sum() / diag(occupied, lv[vol]).sum())
 
 
-def thin(xyz: np.ndarray, voxel: float, closing: int):
+def thin(xyz: np.ndarray, voxel: float, closing: int, support: np.ndarray | None = None):
     """Thinned skeleton (voxel indices, 26-graph, centres in metres). skimage's 3-D thinning
     (Lee) sometimes erases flat pieces of even thickness outright, or most of their length
     (scikit-image#3757, still open): a flat plate lying square to the grid, the commonest scrap,
     loses its line about one time in three. The grid is shifted or one axis grown by a voxel
-    until the skeleton keeps the volume's topology and spans most of it; else the best one."""
+    until the skeleton keeps the volume's topology and spans most of it; else the best one.
+
+    ``support``: points of the surface the drawing lies on; closing then fills only cells that
+    hold some of it. Paint on both faces of a thin plate (a line wrapped over a rim) is otherwise
+    joined through the metal, and the line's skeleton takes that short cut instead of the rim."""
     best = None
     for shift, grow in _ATTEMPTS:
         vol, lo = voxelize(xyz + shift * voxel, voxel, closing + 2)
         if grow is not None:  # the padding keeps the roll from wrapping anything round
             vol = vol | np.roll(vol, 1, axis=grow)
         if closing > 0:
-            vol = ndimage.binary_closing(vol, structure=_S26, iterations=closing)
+            closed = ndimage.binary_closing(vol, structure=_S26, iterations=closing)
+            if support is not None and len(support):
+                on = _cells(support + shift * voxel, voxel, lo, vol.shape)
+                if grow is not None:
+                    on = on | np.roll(on, 1, axis=grow)
+                closed = vol | (closed & on)
+            vol = closed
         skel = skeletonize(vol) > 0
         score = _span_score(vol, skel)
         if best is None or score > best[0]:

@@ -12,7 +12,7 @@ import pytest
 from planners.config import CutPathConfig
 from planners.cutpath import CutPath, build_cut_path, plan_cut, torch_kinematics
 from planners.cutpath.ladder import COLLISION, OUT_OF_REACH, RECONFIGURE, plan_ladder, tilt_directions
-from planners.cutpath.geometry import pivots, torch_poses
+from planners.cutpath.geometry import center_on_paint, pivots, torch_poses
 from planners.cutpath.nozzle import NozzleCheck, nozzle_balls
 from planners.metrics import cut_accuracy
 from planners.motion.ik_batch import solve_axis_ik_batch
@@ -132,6 +132,38 @@ def test_a_nozzle_leaning_into_a_wall_is_not_clear():
     assert check(tips, axes).tolist() == [True, False, True]
 
 
+def test_a_line_off_the_middle_of_its_paint_is_moved_to_it():
+    """A skeleton 3 mm beside the middle of a 2 cm band (what thinning on a 5 mm grid does) comes to
+    the middle; at a right-angle corner of the band the points stay where they are."""
+    rng = np.random.default_rng(4)
+    band = np.column_stack([rng.uniform(0.0, 0.3, 20000), rng.uniform(-0.01, 0.01, 20000), np.zeros(20000)])
+    line = np.column_stack([np.arange(0.0, 0.3, 0.005), np.full(60, 0.003), np.zeros(60)])
+    out = center_on_paint(line, band, 0.005)
+    assert np.abs(out[3:-3, 1]).max() < 0.0008 and np.allclose(out[:, 0], line[:, 0])
+    corner = np.vstack([line[:30], np.column_stack([np.full(30, line[29, 0]), line[29, 1] + np.arange(1, 31) * 0.005,
+                                                    np.zeros(30)])])
+    moved = np.linalg.norm(center_on_paint(corner, band, 0.005) - corner, axis=1)
+    assert moved[27:32].max() == 0.0
+
+
+def test_paint_on_both_faces_of_a_thin_plate_is_not_joined_through_it():
+    """A line painted up one face of a 12 mm plate, over its rim and down the other face: gap
+    closing must not join the two faces through the metal, or the line would skip the rim."""
+    from planners.cutpath.graph import drawing_graph
+
+    z = np.arange(0.0, 0.1, 0.002)
+    x = np.arange(-0.01, 0.01, 0.002)
+    X, Z = np.meshgrid(x, z)
+    faces = [np.column_stack([X.ravel(), np.full(X.size, y), Z.ravel()]) for y in (-0.006, 0.006)]
+    Y, X2 = np.meshgrid(np.arange(-0.006, 0.0061, 0.002), x)
+    rim = np.column_stack([X2.ravel(), Y.ravel(), np.full(X2.size, 0.1)])
+    paint = np.vstack(faces + [rim])
+    plate = np.vstack([paint] + [f + [0.04, 0, 0] for f in faces])  # the surface: the faces and the rim
+    g = drawing_graph(paint, 0.005, 0.03, 1, surface=plate)
+    length = sum(float(np.linalg.norm(np.diff(b, axis=0), axis=1).sum()) for b in g.branches)
+    assert length > 0.18, "the line goes up, over the rim and down: about 0.21 m"
+
+
 def test_a_sharp_edge_is_taken_in_pivot_steps():
     pts = np.array([[0.0, 0, 0], [0.005, 0, 0], [0.010, 0, 0]])
     normals = np.array([[0.0, 0, 1], [0.0, 0, 1], [1.0, 0, 0]])
@@ -215,6 +247,10 @@ def test_cut_accuracy_against_a_known_line():
     ([((0.3, -0.15), (0.6, 0.15)), ((0.3, 0.15), (0.6, -0.15))], [0.42, 0.42]),  # a crossing: two straight cuts
     ([((0.3, 0.0), (0.6, 0.0)), ((0.45, 0.0), (0.45, 0.2))], [0.30, 0.19]),  # a T: the bar in one cut, the stem
     ([((0.3, -0.15), (0.55, 0.0)), ((0.55, 0.0), (0.3, 0.1))], [0.55]),  # an acute corner: one cut, no spurs
+    # two lines crossing at 30 deg: the thinned X has two junctions 10 cm apart, still two straight cuts
+    ([((0.3, -0.1), (0.6, 0.1)), ((0.3, -0.0097), (0.6, 0.0097))], None),
+    # an H: its 8 cm crossbar joins two T junctions and is cut too
+    ([((0.35, -0.15), (0.35, 0.15)), ((0.43, -0.15), (0.43, 0.15)), ((0.35, 0.0), (0.43, 0.0))], [0.30, 0.30, 0.06]),
 ])
 def test_strokes_go_through_junctions_and_round_corners(segments, strokes):
     g = np.mgrid[0.25:0.65:0.002, -0.25:0.25:0.002].reshape(2, -1).T
@@ -226,6 +262,8 @@ def test_strokes_go_through_junctions_and_round_corners(segments, strokes):
         paint |= np.linalg.norm(g - a - t[:, None] * (b - a), axis=1) <= 0.01
     path = build_cut_path(surf[paint], surf, CFG, viewpoint=np.array([0.45, 0.0, 0.6]))
     lengths = sorted((b.length_m for b in path.branches), reverse=True)
+    if strokes is None:  # the strokes are the segments themselves
+        strokes = [float(np.linalg.norm(np.subtract(b, a))) for a, b in segments]
     assert len(lengths) == len(strokes)
     np.testing.assert_allclose(lengths, sorted(strokes, reverse=True), atol=0.03)
     truth = [np.array([[*a, 0.1], [*b, 0.1]]) for a, b in segments]

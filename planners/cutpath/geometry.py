@@ -75,6 +75,45 @@ def smooth_resample(poly: np.ndarray, spacing_m: float, smoothing_m: float, clos
     return np.vstack([pieces[0]] + [q[1:] for q in pieces[1:]])
 
 
+def center_on_paint(points: np.ndarray, paint: np.ndarray, spacing_m: float, closed: bool = False,
+                    reach_m: float = 0.03, max_turn_deg: float = 20.0) -> np.ndarray:
+    """Each point moved across the line to the middle of the paint beside it: the centroid of the
+    paint in a slab one spacing thick across the line, within the band's half width (the median
+    over the points of how far the paint reaches, at most ``reach_m``), the move across the line
+    only. A sprayed band is symmetric about its centre line; the voxel skeleton and its smoothing
+    are not (up to half a voxel off, more where thinning leans). Points where the line turns by
+    more than ``max_turn_deg`` within the band stay: a corner's slab holds both of its sides."""
+    p = _checks.points(points, "points", 1)
+    paint = np.asarray(paint, dtype=np.float64).reshape(-1, 3)
+    if len(p) < 3 or len(paint) < 10:
+        return p
+    t = tangents(p, closed)
+    pairs = cKDTree(p).sparse_distance_matrix(cKDTree(paint), reach_m, output_type="coo_matrix")
+    i, j = pairs.row, pairs.col
+    v = paint[j] - p[i]
+    along = np.einsum("kj,kj->k", v, t[i])
+    slab = np.abs(along) <= 0.5 * spacing_m
+    i, v, along = i[slab], v[slab], along[slab]
+    across = v - along[:, None] * t[i]
+    r = np.linalg.norm(across, axis=1)
+    if len(r) == 0:
+        return p
+    reach = np.zeros(len(p))
+    np.maximum.at(reach, i, r)
+    half = float(np.median(reach[reach > 0])) * 1.2  # the band's half width, with a little room
+    inside = r <= half
+    count = np.bincount(i[inside], minlength=len(p))
+    shift = np.stack([np.bincount(i[inside], across[inside, k], minlength=len(p)) for k in range(3)], axis=1)
+    shift /= np.maximum(count, 1)[:, None]
+    k = max(1, int(round(half / spacing_m)))
+    a, b = np.clip(np.arange(len(p)) - k, 0, len(p) - 1), np.clip(np.arange(len(p)) + k, 0, len(p) - 1)
+    straight = np.einsum("kj,kj->k", t[a], t[b]) >= np.cos(np.radians(max_turn_deg))
+    move = straight & (count >= 5)
+    out = p.copy()
+    out[move] += shift[move]
+    return out
+
+
 def _corner_point(p: np.ndarray, i: int, scale_m: float, paint: np.ndarray | None = None) -> np.ndarray:
     """Where the two sides of a corner meet: thinning rounds a painted corner off (by up to a line
     width at an acute one), so the corner is put where straight fits of the two sides, from one

@@ -343,12 +343,14 @@ def _extend_ends(g: _Builder, xyz: np.ndarray, tree: cKDTree, voxel: float, roun
 
 #: voxel grid variants tried in turn: (grid offset in voxels, axis grown by one voxel or None)
 def drawing_graph(xyz: np.ndarray, voxel_m: float = 0.005, min_branch_m: float = 0.03,
-                  closing_iterations: int = 1, extend_ends: bool = True) -> DrawingGraph:
+                  closing_iterations: int = 1, extend_ends: bool = True,
+                  surface: np.ndarray | None = None) -> DrawingGraph:
     """Skeleton graph of a drawing cloud (N,3): junctions (clusters of adjacent degree-≥3
     skeleton voxels, at their centroid), free ends (degree 1) and one ordered polyline per branch
     between them, spurs shorter than `min_branch_m` pruned, free ends carried on to where the paint
     ends. Voxelization, gap closing and thinning are those of `order_curve`, made robust to the
-    thinning's habit of erasing flat pieces (see `_skeleton`)."""
+    thinning's habit of erasing flat pieces (see `_skeleton`). ``surface``: the scanned surface,
+    where gap closing may add cells (``skeleton.thin``)."""
     xyz = _checks.points(xyz, "xyz")
     voxel = _checks.positive(voxel_m, "voxel_m")
     min_branch = _checks.non_negative(min_branch_m, "min_branch_m")
@@ -365,7 +367,7 @@ def drawing_graph(xyz: np.ndarray, voxel_m: float = 0.005, min_branch_m: float =
     if dense.sum() >= 0.5 * len(xyz):  # else the cloud is just sparse: keep it all
         xyz = xyz[dense]
         tree = cKDTree(xyz)
-    ijk, G, pos = thin(xyz, voxel, int(closing_iterations))
+    ijk, G, pos = thin(xyz, voxel, int(closing_iterations), surface)
     A = _without_shortcuts(G)
     b = _trace(A, pos)
     _prune(b, min_branch)
@@ -379,49 +381,111 @@ def drawing_graph(xyz: np.ndarray, voxel_m: float = 0.005, min_branch_m: float =
     return DrawingGraph(nodes, [b.kind[k] for k in keys], branches, ends, voxel)
 
 
-def through_junctions(g: DrawingGraph, max_turn_deg: float = 45.0, near_m: float = 0.015, far_m: float = 0.04) -> list[
-        tuple[np.ndarray, int, int]]:
+def through_junctions(g: DrawingGraph, max_turn_deg: float = 45.0, near_m: float = 0.015, far_m: float = 0.04,
+                      bridge_max_m: float = 0.15, cover_m: float = 0.01) -> list[tuple[np.ndarray, int, int]]:
     """The drawing's strokes: at a junction, the two branches that continue each other (their
     directions away from it within ``max_turn_deg`` of opposite) are joined into one polyline, so a
     crossing is cut straight through instead of stopping at it; the straightest pair first, and
     again at the next junction along. A branch's direction is taken between ``near_m`` and
-    ``far_m`` from the junction: the skeleton bends toward the other branches right at it.
+    ``far_m`` from the junction: the skeleton bends toward the other branches right at it, so a
+    stroke crosses a junction on the chord between its two branches' points ``near_m`` away.
+
+    Two lines crossing at a shallow angle thin to two junctions and a bridge between them (an X
+    becomes two Ys): a bridge shorter than ``bridge_max_m`` whose every point lies within
+    ``cover_m`` of the chords of the strokes that would cross there instead is dropped and its two
+    junctions become one (an H keeps its crossbar: no chord covers it).
     Returns (polyline, start node, end node) per stroke."""
     strokes = [[np.asarray(p, dtype=np.float64), a, b] for p, (a, b) in zip(g.branches, g.ends)]
     cos_max = -np.cos(np.radians(max_turn_deg))
+    kinds = list(g.kinds)
+    root = list(range(len(kinds)))
 
-    def away(p: np.ndarray, at_start: bool) -> np.ndarray | None:
-        q = p if at_start else p[::-1]
-        s = arc_length(q)
-        i = min(int(np.searchsorted(s, near_m)), len(q) - 1)
-        j = min(int(np.searchsorted(s, far_m)), len(q) - 1)
-        d = q[j] - q[i] if j > i else q[-1] - q[0]
-        n = np.linalg.norm(d)
-        return d / n if n > 1e-9 else None
+    def at(node: int) -> list[tuple[int, bool]]:
+        """(stroke, whether it starts there) of every live stroke end at a (merged) junction."""
+        return [(i, end == "start") for i, (p, a, b) in enumerate(strokes) if p is not None and a != b
+                for end, n in (("start", a), ("end", b)) if _root(root, n) == node]
 
-    for node in [i for i, k in enumerate(g.kinds) if k == JUNCTION]:  # a few junctions
+    for k, (p, a, b) in enumerate(strokes):  # bridges first
+        if p is None or a == b or kinds[a] != JUNCTION or kinds[b] != JUNCTION or arc_length(p)[-1] > bridge_max_m:
+            continue
+        ra, rb = _root(root, a), _root(root, b)
+        if ra == rb:
+            continue
+        others = [x for x in at(ra) + at(rb) if x[0] != k]
+        pairs = _pairs([(i, s0, _away(strokes[i][0], s0, near_m, far_m)) for i, s0 in others], cos_max)
+        chords = [(_point_back(strokes[i][0], si, near_m), _point_back(strokes[j][0], sj, near_m))
+                  for (i, si), (j, sj) in pairs]
+        if chords and _covered(p, chords, cover_m):
+            root[rb] = ra
+            strokes[k][0] = None
+    for st in strokes:
+        if st[0] is not None:
+            st[1], st[2] = _root(root, st[1]), _root(root, st[2])
+
+    for node in [i for i, kind in enumerate(kinds) if kind == JUNCTION and _root(root, i) == i]:  # a few junctions
         while True:
-            inc = [(i, end) for i, (p, a, b) in enumerate(strokes) if p is not None and a != b
-                   for end, n in (("start", a), ("end", b)) if n == node]
-            dirs = [(i, end, away(strokes[i][0], end == "start")) for i, end in inc]
-            dirs = [x for x in dirs if x[2] is not None]
-            best, pair = cos_max, None
-            for u in range(len(dirs)):  # a handful of branches meet at a junction
-                for v in range(u + 1, len(dirs)):
-                    if dirs[u][0] == dirs[v][0]:
-                        continue
-                    c = float(dirs[u][2] @ dirs[v][2])
-                    if c < best:
-                        best, pair = c, (dirs[u], dirs[v])
-            if pair is None:
+            ends = at(node)
+            pair = _pairs([(i, s0, _away(strokes[i][0], s0, near_m, far_m)) for i, s0 in ends], cos_max)[:1]
+            if not pair:
                 break
-            (i, ei, _), (j, ej, _) = pair
+            (i, i_starts), (j, j_starts) = pair[0]
             p, a, b = strokes[i]
             q, c, d = strokes[j]
-            if ei == "start":  # make p end at the junction
+            if i_starts:  # make p end at the junction
                 p, a, b = p[::-1], b, a
-            if ej == "end":  # make q start at it
+            if not j_starts:  # make q start at it
                 q, c, d = q[::-1], d, c
-            strokes[i] = [np.vstack([p, q[1:]]), a, d]
+            p = p[: max(2, len(p) - int(np.searchsorted(arc_length(p[::-1]), near_m)))]
+            q = q[min(int(np.searchsorted(arc_length(q), near_m)), max(len(q) - 2, 0)):]
+            strokes[i] = [np.vstack([p, q]), a, d]
             strokes[j][0] = None
     return [(p, a, b) for p, a, b in strokes if p is not None]
+
+
+def _away(p: np.ndarray, at_start: bool, near_m: float, far_m: float) -> np.ndarray | None:
+    """Unit direction of a branch away from its junction end, between near_m and far_m along it."""
+    q = p if at_start else p[::-1]
+    s = arc_length(q)
+    i = min(int(np.searchsorted(s, near_m)), len(q) - 1)
+    j = min(int(np.searchsorted(s, far_m)), len(q) - 1)
+    d = q[j] - q[i] if j > i else q[-1] - q[0]
+    n = np.linalg.norm(d)
+    return d / n if n > 1e-9 else None
+
+
+def _point_back(p: np.ndarray, at_start: bool, dist: float) -> np.ndarray:
+    """The branch's point ``dist`` along it from its junction end (its far end if shorter)."""
+    q = p if at_start else p[::-1]
+    return q[min(int(np.searchsorted(arc_length(q), dist)), len(q) - 1)]
+
+
+def _pairs(dirs: list, cos_max: float) -> list[tuple[tuple[int, bool], tuple[int, bool]]]:
+    """Greedy, straightest first: pairs of branch ends (stroke, starts there) whose directions away
+    from the junction are within the turn of opposite (cosine below cos_max); each end used once."""
+    dirs = [x for x in dirs if x[2] is not None]
+    cand = sorted((float(dirs[u][2] @ dirs[v][2]), u, v) for u in range(len(dirs)) for v in range(u + 1, len(dirs))
+                  if dirs[u][0] != dirs[v][0])  # a handful of branches meet at a junction
+    used, out = set(), []
+    for c, u, v in cand:
+        if c < cos_max and u not in used and v not in used:
+            used |= {u, v}
+            out.append(((dirs[u][0], dirs[u][1]), (dirs[v][0], dirs[v][1])))
+    return out
+
+
+def _covered(p: np.ndarray, chords: list[tuple[np.ndarray, np.ndarray]], tol: float) -> bool:
+    """Every point of p lies within tol of one of the segments."""
+    a = np.array([c[0] for c in chords])
+    b = np.array([c[1] for c in chords])
+    ab = b - a
+    t = np.clip(np.einsum("pkj,kj->pk", p[:, None, :] - a[None], ab) / np.maximum(np.einsum("kj,kj->k", ab, ab), 1e-18),
+                0.0, 1.0)
+    d = np.linalg.norm(p[:, None, :] - (a[None] + t[..., None] * ab[None]), axis=2)
+    return bool((d.min(axis=1) <= tol).all())
+
+
+def _root(root: list[int], i: int) -> int:
+    """Union-find: the node a junction was merged into."""
+    while root[i] != i:
+        i = root[i]
+    return i

@@ -10,7 +10,8 @@ import numpy as np
 from planners.clouds import Cloud
 from planners.cutpath import _checks
 from planners.cutpath.config import CutPathConfig
-from planners.cutpath.geometry import Surface, arc_length, on_surface, pivots, smooth_resample, torch_poses
+from planners.cutpath.geometry import (Surface, arc_length, center_on_paint, on_surface, pivots, smooth_resample,
+                                      torch_poses)
 from planners.cutpath.graph import END, JUNCTION, LOOP, drawing_graph, through_junctions
 from planners.cutpath.ladder import RECONFIGURE, cut_spline, every_degree, plan_ladder, tilt_directions
 from planners.cutpath.nozzle import NozzleCheck
@@ -67,7 +68,7 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | No
         surf = Surface(d_xyz, d_origin, viewpoint, cfg.normal_radius_m, "drawing")
     else:
         surf = Surface(*_xyz_origin(surface, "surface"), viewpoint, cfg.normal_radius_m)
-    g = drawing_graph(d_xyz, cfg.voxel_m, cfg.min_branch_m, cfg.closing_iterations)
+    g = drawing_graph(d_xyz, cfg.voxel_m, cfg.min_branch_m, cfg.closing_iterations, surface=surf.xyz)
 
     counters = {JUNCTION: 0, END: 0, LOOP: 0}
     label = []
@@ -79,6 +80,7 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | No
         closed = a == b and g.kinds[a] == LOOP
         pts = smooth_resample(poly, cfg.spacing_m, cfg.smoothing_voxels * cfg.voxel_m, closed,
                               corner_scale_m=cfg.corner_scale_m, corner_deg=cfg.corner_deg, paint=d_xyz)
+        pts = center_on_paint(pts, d_xyz, cfg.spacing_m, closed)
         pts, normals = pivots(*on_surface(pts, surf, cfg.spacing_m), cfg.pivot_step_deg)
         poses = torch_poses(pts, normals, cfg.standoff_m, closed)
         branches.append(Branch(pts, normals, poses, np.full(len(pts), cfg.travel_speed_mps), label[a], label[b], closed))
