@@ -472,3 +472,19 @@ def test_the_batched_check_gives_every_row_the_single_verdict(robot):
     np.testing.assert_array_equal(ch.free(Q[:50]), [ch.check(q) is None for q in Q[:50]])
     with pytest.raises(ValueError):
         ch.free(np.full((2, 7), np.nan))
+
+
+def test_the_balls_of_a_part_contain_it(robot):
+    """The distance-map shortcut of free() is only as safe as its balls: every point of every
+    inflated part lies in one of its balls."""
+    from planners.motion.collision import _ball_cover, _inflate
+
+    rng = np.random.default_rng(7)
+    for part in robot.parts:
+        v, f = _inflate(part.vertices, 0.02)
+        c, r = _ball_cover(v, f)
+        w = rng.dirichlet(np.full(len(v), 0.3), size=3000)  # points inside the hull, many near its faces
+        pts = np.vstack([w @ v, v])
+        d = np.linalg.norm(pts[:, None, :] - c[None], axis=2)
+        assert (d <= r[None] + 1e-9).any(axis=1).all(), part.name
+        assert len(c) >= 1 and r.max() <= np.linalg.norm(np.ptp(v, axis=0)) / 2 + 1e-9

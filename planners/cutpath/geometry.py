@@ -204,7 +204,7 @@ class Surface:
         if self._mean_origin is None and self.viewpoint is None:
             raise ValueError(f"{name}.origin has no finite sensor position and no viewpoint was given: "
                              "normals cannot be oriented")
-        self.tree = cKDTree(self.xyz)
+        self.tree = cKDTree(self.xyz, balanced_tree=False, compact_nodes=False)  # built per cut: half the time
 
     def normals(self, at: np.ndarray) -> np.ndarray:
         """Outward unit normals (M,3) at points near the surface: the least-variance direction of

@@ -269,6 +269,34 @@ def _inflate(vertices: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarra
     return _hull((vertices[:, None, :] + margin * _BALL_POINTS[None]).reshape(-1, 3))
 
 
+def _ball_cover(vertices: np.ndarray, faces: np.ndarray, slab_m: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """(centres (B, 3), radii (B,)) of balls whose union contains the convex hull: the hull cut into
+    slabs ``slab_m`` thick along its longest principal axis, each slab's piece in one ball. A piece
+    of a convex polytope is the hull of the polytope's vertices inside the slab and the points where
+    its edges cross the slab's planes, so the ball round those points holds it. Finer than one ball
+    per part for the distance-map shortcut of ``CollisionChecker.free``."""
+    c = vertices.mean(axis=0)
+    axis = np.linalg.svd(vertices - c, full_matrices=False)[2][0]
+    t = (vertices - c) @ axis
+    k = max(1, int(np.ceil((t.max() - t.min()) / slab_m)))
+    cuts = np.linspace(t.min(), t.max(), k + 1)
+    e = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1), axis=0)
+    a, b = vertices[e[:, 0]], vertices[e[:, 1]]
+    ta, tb = t[e[:, 0]], t[e[:, 1]]
+    centres, radii = [], []
+    for lo, hi in zip(cuts[:-1], cuts[1:]):  # a few slabs per part
+        pts = [vertices[(t >= lo - 1e-12) & (t <= hi + 1e-12)]]
+        for plane in (lo, hi):
+            cross = (np.minimum(ta, tb) < plane) & (np.maximum(ta, tb) > plane)
+            f = (plane - ta[cross]) / (tb[cross] - ta[cross])
+            pts.append(a[cross] + f[:, None] * (b[cross] - a[cross]))
+        pts = np.vstack(pts)
+        m = (pts.max(axis=0) + pts.min(axis=0)) / 2
+        centres.append(m)
+        radii.append(np.linalg.norm(pts - m, axis=1).max())
+    return np.array(centres), np.array(radii)
+
+
 def _face_planes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Outward unit normals (m, 3) and offsets (m,) of a convex hull's faces: inside is n.x <= d."""
     a, b, c = (vertices[faces[:, i]] for i in range(3))
@@ -660,8 +688,12 @@ class CollisionChecker:
         lo = np.stack([v.min(0) for v, _ in inflated])
         hi = np.stack([v.max(0) for v, _ in inflated])
         self._box_c, self._box_h = (lo + hi) / 2, (hi - lo) / 2
-        self._sphere_c = self._box_c  # a ball round each inflated part, for the scene's distance map
-        self._sphere_r = np.array([np.linalg.norm(v - c, axis=1).max() for (v, _), c in zip(inflated, self._box_c)])
+        # balls covering each inflated part, for the scene's distance map: (B,3) in their part's frame
+        cover = [_ball_cover(v, f) for v, f in inflated]
+        self._ball_part = np.repeat(np.arange(len(cover)), [len(c) for c, _ in cover])
+        self._ball_c = np.vstack([c for c, _ in cover])
+        self._ball_r = np.concatenate([r for _, r in cover])
+        self._ball_start = np.cumsum([0] + [len(c) for c, _ in cover[:-1]])
         self._scene_dist = None
         self._scene: fcl.CollisionObject | None = None
         self._scene_lo = self._scene_hi = None
@@ -752,9 +784,11 @@ class CollisionChecker:
                 ok &= ~self._narrow(cand, Pm, box)
             if self._scene is not None:
                 cand = ok[:, None] & np.all((c + h >= self._scene_lo) & (c - h <= self._scene_hi), axis=2)
-                if cand.any():
-                    centre = np.einsum("npij,pj->npi", R, self._sphere_c) + Pm[..., :3, 3]
-                    cand &= self._scene_distance(centre) <= self._sphere_r
+                if cand.any():  # does some ball of the part reach the scene?
+                    Pb = Pm[:, self._ball_part]
+                    centre = np.einsum("nbij,bj->nbi", Pb[..., :3, :3], self._ball_c) + Pb[..., :3, 3]
+                    near = self._scene_distance(centre) <= self._ball_r  # (N, B), balls grouped by part
+                    cand &= np.logical_or.reduceat(near, self._ball_start, axis=1)
                 ok &= ~self._narrow(cand, Pm, self._scene)
         if self.cfg.self_collision and len(robot.self_pairs) and ok.any():
             rows = np.flatnonzero(ok)
