@@ -38,6 +38,9 @@ GAP_REASONS = (OUT_OF_REACH, JOINT_LIMITS, COLLISION, SINGULAR, RECONFIGURE)
 PIVOT_GAIN = 2.0
 #: share of each joint's speed limit a pivot may use (the timed spline overshoots the secant a little)
 PIVOT_SPEED = 0.5
+#: colliding motions tried between two layers before the cut is split there (a reconfiguration: the
+#: torch lifts and lands again, nothing is left uncut); bounds the lazy search near a tight corner
+MOTION_TRIES = 8
 _WHY = {OUT_OF_REACH: "the torch pose is beyond the arm's reach at every tilt",
         JOINT_LIMITS: "in reach, but no configuration within the joint limits holds the torch there",
         COLLISION: "every configuration that holds the torch there collides with the scanned piece or the arm",
@@ -164,6 +167,7 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
         return joinable[k] & ~blocked[k] & usable[k][:, None] & usable[k + 1][None, :]
 
     seg_free: set = set()  # spline segments found free, keyed by their four rungs
+    motion_hits = np.zeros(max(N - 1, 0), dtype=np.int64)  # colliding motions found per layer pair
     while True:
         usable = valid & free
         runs = _split(N, usable, edges)
@@ -184,6 +188,9 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
             hit_edges = _check_motion(runs, chosen, Qf, tips, S, cfg, max_vel, is_free, seg_free)
             for k, a, b in hit_edges:
                 blocked[k, a, b] = True
+                motion_hits[k] += 1
+                if motion_hits[k] >= MOTION_TRIES:  # no clear motion found here: the torch lifts and lands again
+                    blocked[k] = True
             if hit_edges:
                 continue
         if not hit_layers:

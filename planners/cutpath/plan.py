@@ -334,10 +334,13 @@ def _time_run(b: Branch, kin: Kinematics, q_here: np.ndarray, cfg: CutPathConfig
                     if all(clear([u, v]) for u, v in zip(via[:-1], via[1:])):
                         waypoints = via + [b.q[0]]
                         break
-                else:  # none of the simple routes: a roadmap through the free space
-                    via = roadmap_route(q_here, goal, lambda Q: _free(is_free, Q), sampled, kin.lower, kin.upper)
-                    if via is not None:
-                        waypoints = via + [b.q[0]]
+                else:  # none of the simple routes: a roadmap through the free space, denser if need be
+                    for samples in (150, 600):
+                        via = roadmap_route(q_here, goal, lambda Q: _free(is_free, Q), sampled, kin.lower, kin.upper,
+                                            samples=samples)
+                        if via is not None:
+                            waypoints = via + [b.q[0]]
+                            break
         try:
             jp = timed(waypoints)
         except ValueError as exc:  # e.g. the time-optimal motion overshoots a joint limit

@@ -695,6 +695,20 @@ class CollisionChecker:
         self._ball_r = np.concatenate([r for _, r in cover])
         self._ball_start = np.cumsum([0] + [len(c) for c, _ in cover[:-1]])
         self._scene_dist = None
+        # balls covering each part as it is (self-collision uses the bare hulls), and for every self
+        # pair the pairs of its two parts' balls, grouped by self pair
+        raw = [_ball_cover(p.vertices, p.faces) for p in parts]
+        offset = np.cumsum([0] + [len(c) for c, _ in raw[:-1]])
+        ba, bb, first = [], [], []
+        for a, b in robot.self_pairs:
+            first.append(len(ba))
+            ia = offset[a] + np.arange(len(raw[a][0]))
+            ib = offset[b] + np.arange(len(raw[b][0]))
+            ba += np.repeat(ia, len(ib)).tolist()
+            bb += np.tile(ib, len(ia)).tolist()
+        self._self_balls = (np.repeat(np.arange(len(raw)), [len(c) for c, _ in raw]), np.vstack([c for c, _ in raw]),
+                            np.concatenate([r for _, r in raw]), np.array(ba, dtype=np.intp),
+                            np.array(bb, dtype=np.intp), np.array(first, dtype=np.intp))
         self._scene: fcl.CollisionObject | None = None
         self._scene_lo = self._scene_hi = None
         self.scene_voxels = 0
@@ -792,10 +806,13 @@ class CollisionChecker:
                 ok &= ~self._narrow(cand, Pm, self._scene)
         if self.cfg.self_collision and len(robot.self_pairs) and ok.any():
             rows = np.flatnonzero(ok)
-            c = np.einsum("npij,pj->npi", P[rows, :, :3, :3], robot._centre) + P[rows, :, :3, 3]
             i, j = robot.self_pairs[:, 0], robot.self_pairs[:, 1]
-            near = np.linalg.norm(c[:, i] - c[:, j], axis=2) <= robot._radius[i] + robot._radius[j]
-            for r, k in zip(*np.nonzero(near)):  # narrow phase: the few pairs whose spheres meet
+            bp, bc, br, ba, bb, first = self._self_balls
+            Pb = P[rows][:, bp]  # (n, balls, 4, 4): each ball's part pose
+            c = np.einsum("nbij,bj->nbi", Pb[..., :3, :3], bc) + Pb[..., :3, 3]
+            meet = np.linalg.norm(c[:, ba] - c[:, bb], axis=2) <= br[ba] + br[bb]  # (n, ball pairs)
+            near = np.logical_or.reduceat(meet, first, axis=1)  # (n, self pairs): some balls of the two meet
+            for r, k in zip(*np.nonzero(near)):  # narrow phase: the few pairs whose balls meet
                 if not ok[rows[r]]:
                     continue
                 a, b = int(i[k]), int(j[k])
@@ -830,9 +847,10 @@ class CollisionChecker:
         idx = np.clip(np.rint(f), 0, shape - 1).astype(np.intp)
         outside = np.linalg.norm((f - idx) * v, axis=-1)  # how far beyond the map's edge (0 within)
         inside_d = self._scene_dist[idx[..., 0], idx[..., 1], idx[..., 2]]
-        # nearest cell centre: at most half a cell's diagonal from the point's cell centre; a cube
-        # reaches half a diagonal beyond its centre
-        return np.maximum(inside_d - outside, outside) - np.sqrt(3.0) * v
+        # from the point to the centre of its cell is ``outside`` (exact); an occupied cube reaches half
+        # a cell's diagonal beyond its centre. Beyond the map, the box of all cubes is at least
+        # ``outside`` minus that away.
+        return np.maximum(inside_d - outside, outside) - 0.5 * np.sqrt(3.0) * v
 
     def check_all(self, Q: np.ndarray) -> Collision | None:
         """Report of the first colliding row of Q (T, dof), with ``index`` set; None if all are free."""
