@@ -106,8 +106,9 @@ def test_scan_ends_with_a_cutting_path_the_twin_can_follow(cell, tmp_path):
     result, run_dir = _scan(cell, "branched_cylinder", tmp_path, dry_run_cut=True)
     assert result.error is None and result.cut is not None and result.cut["error"] is None
     c = result.cut
-    # the arm cannot reach the drawing's far ends: those stretches are gaps with their reason, the rest is cut
-    assert c["feasible_branches"] >= 3 and c["cut_fraction"] >= 0.65, c
+    # the two painted lines cross: each is one cut straight through the crossing; the arm cannot reach
+    # the drawing's far ends: those stretches are gaps with their reason, the rest is cut
+    assert c["feasible_branches"] >= 2 and c["cut_fraction"] >= 0.65, c
     assert 0.7 < c["drawing_length_m"] < 1.3  # the two painted lines are about 0.5 m each
     assert all(g["reason"] in ("out of reach", "joint limits", "collision", "singular", "reconfigure")
                for g in c["gaps"]), c["gaps"]
