@@ -9,6 +9,27 @@ import numpy as np
 from planners.clouds import voxel_keys
 
 
+def _frame(ax, mid: np.ndarray, r: float, elev: float, azim: float, legend: bool) -> None:
+    """A cube of half side r about mid, seen from (elev, azim), axes named; the legend on one view."""
+    ax.set_xlim(mid[0] - r, mid[0] + r)
+    ax.set_ylim(mid[1] - r, mid[1] + r)
+    ax.set_zlim(mid[2] - r, mid[2] + r)
+    ax.view_init(elev=elev, azim=azim)
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    if legend:
+        ax.legend(loc="upper left", fontsize=7)
+
+
+def _save(fig, path: str | Path, title: str) -> None:
+    import matplotlib.pyplot as plt
+
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def coverage_figure(path: str | Path, gt: np.ndarray, recon: np.ndarray, viewpoints: np.ndarray, voxel: float,
                     surface: np.ndarray | None = None, title: str = "") -> None:
     import matplotlib
@@ -35,18 +56,8 @@ def coverage_figure(path: str | Path, gt: np.ndarray, recon: np.ndarray, viewpoi
         allp = np.vstack([centers, vp]) if len(vp) else centers
         mid = (allp.max(0) + allp.min(0)) / 2
         r = (allp.max(0) - allp.min(0)).max() / 2 + 0.02
-        ax.set_xlim(mid[0] - r, mid[0] + r)
-        ax.set_ylim(mid[1] - r, mid[1] + r)
-        ax.set_zlim(mid[2] - r, mid[2] + r)
-        ax.view_init(elev=elev, azim=azim)
-        ax.set_xlabel("x")
-        ax.set_ylabel("y")
-        if i == 0:
-            ax.legend(loc="upper left", fontsize=7)
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+        _frame(ax, mid, r, elev, azim, legend=i == 0)
+    _save(fig, path, title)
 
 
 def cut_figure(path: str | Path, surface: np.ndarray, cuts: list[np.ndarray], gaps: list[dict],
@@ -81,15 +92,5 @@ def cut_figure(path: str | Path, surface: np.ndarray, cuts: list[np.ndarray], ga
             ax.plot(*pts.T, c="tab:red", lw=3.0, label="not cut" if k == 0 else None)
             if i == 0:
                 ax.text(*pts[len(pts) // 2], f"{g['reason']} {1000 * g['length_m']:.0f} mm", fontsize=7, c="tab:red")
-        ax.set_xlim(mid[0] - r, mid[0] + r)
-        ax.set_ylim(mid[1] - r, mid[1] + r)
-        ax.set_zlim(mid[2] - r, mid[2] + r)
-        ax.view_init(elev=elev, azim=azim)
-        ax.set_xlabel("x")
-        ax.set_ylabel("y")
-        if i == 0:
-            ax.legend(loc="upper left", fontsize=7)
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+        _frame(ax, mid, r, elev, azim, legend=i == 0)
+    _save(fig, path, title)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from .ik import MAX_STEP, ROT_WEIGHT, _DAMP0, _DAMP_K, _shrunk_limits
-from .kinematics import Kinematics
+from .kinematics import Kinematics, _joint_motion
 
 #: iterations without progress after which a target is given up
 STALL = 20
@@ -26,16 +26,8 @@ def _chain(kin: Kinematics, Q: np.ndarray, frame: str) -> tuple[np.ndarray, np.n
         T = T @ M
         axes[:, iq] = T[:, :3, :3] @ axis
         origins[:, iq] = T[:, :3, 3]
-        x = Q[:, iq]
-        J = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
-        if kind == "R":
-            revolute[iq] = True
-            K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-            s, c = np.sin(x)[:, None, None], np.cos(x)[:, None, None]
-            J[:, :3, :3] = np.eye(3) + s * K + (1 - c) * (K @ K)
-        else:
-            J[:, :3, 3] = x[:, None] * axis
-        T = T @ J
+        revolute[iq] = kind == "R"
+        T = T @ _joint_motion(kind, axis, Q[:, iq])
     T = T @ F
     return T, axes, np.where(revolute[None, :, None], origins, np.nan)
 
