@@ -269,3 +269,116 @@ def test_strokes_go_through_junctions_and_round_corners(segments, strokes):
     truth = [np.array([[*a, 0.1], [*b, 0.1]]) for a, b in segments]
     acc = cut_accuracy(truth, [b.points for b in path.branches])
     assert acc["path_to_line_max_mm"] <= 5.0 and acc["cut_coverage"] >= 0.9, acc
+
+
+# ------------------------------------------------------------------ the cut follows the paint (3)
+def _plate(x=(0.25, 0.65), y=(-0.2, 0.2), z=0.1, step=0.002):
+    g = np.mgrid[x[0]:x[1]:step, y[0]:y[1]:step].reshape(2, -1).T
+    return np.column_stack([g, np.full(len(g), z)])
+
+
+def _cloud(xyz, eyes):
+    from planners.clouds import Cloud
+
+    xyz = np.asarray(xyz, np.float32)
+    return Cloud(xyz, np.zeros(xyz.shape, np.uint8), np.broadcast_to(np.asarray(eyes, np.float32), xyz.shape).copy())
+
+
+def _band(points, a, b, width=0.02):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    d = points - a
+    t = np.clip(d @ (b - a) / np.dot(b - a, b - a), 0.0, 1.0)
+    return np.linalg.norm(d - t[:, None] * (b - a), axis=1) <= width / 2
+
+
+def test_a_stroke_ends_at_its_caps_centre_and_a_line_off_an_edge_at_the_edge():
+    """A sprayed stroke ends in round caps half its width beyond the line the worker drew: the cut
+    ends at the caps' centres, within 2 mm of the drawn ends, not in the caps. A line that runs off
+    the plate ends where the metal does."""
+    surf = _plate()
+    eye = [0.45, 0.0, 0.6]
+    a, b = np.array([0.33, -0.05, 0.1]), np.array([0.55, 0.06, 0.1])
+    path = build_cut_path(_cloud(surf[_band(surf, a, b)], eye), _cloud(surf, eye), CFG)
+    assert len(path.branches) == 1
+    p = path.branches[0].points
+    ends = sorted([p[0], p[-1]], key=lambda e: e[0])
+    assert np.linalg.norm(ends[0] - a) < 0.002 and np.linalg.norm(ends[1] - b) < 0.002
+    off = _band(surf, [0.45, 0.0, 0.1], [0.75, 0.0, 0.1])  # clipped by the plate's edge at x = 0.65
+    p = build_cut_path(_cloud(surf[off], eye), _cloud(surf, eye), CFG).branches[0].points
+    assert max(p[0, 0], p[-1, 0]) > 0.645 and min(p[0, 0], p[-1, 0]) == pytest.approx(0.45, abs=0.002)
+
+
+def test_a_line_over_a_raised_rim_keeps_going_forward():
+    """A line over a step 60 mm high and 50 mm wide (a collar on a pipe): four corners close
+    together. Each corner is rebuilt from its own two sides; fitted across the next corner it
+    landed 35 mm along the line and the cut went back and forth there."""
+    x0, h, w = 0.45, 0.06, 0.025
+    u = np.arange(0.40, 0.50, 0.002)
+    base = _plate(x=(0.40, 0.50), y=(-0.2, 0.2))
+    base = base[np.abs(base[:, 1]) > w]
+    zs = np.arange(0.1, 0.1 + h, 0.002)
+    U, Z = np.meshgrid(u, zs)
+    near = np.column_stack([U.ravel(), np.full(U.size, -w), Z.ravel()])
+    far = near * [1, -1, 1]
+    U, Y = np.meshgrid(u, np.arange(-w, w + 1e-9, 0.002))
+    rim = np.column_stack([U.ravel(), Y.ravel(), np.full(U.size, 0.1 + h)])
+    parts = [base, near, far, rim]
+    eyes = [[0.45, 0.0, 0.7], [0.45, -0.5, 0.13], [0.45, 0.5, 0.13], [0.45, 0.0, 0.7]]
+    surf = np.vstack(parts)
+    origin = np.vstack([np.tile(e, (len(q), 1)) for q, e in zip(parts, eyes)])
+    from planners.clouds import Cloud
+
+    def cl(m):
+        return Cloud(surf[m].astype(np.float32), np.zeros((m.sum(), 3), np.uint8), origin[m].astype(np.float32))
+
+    paint = (np.abs(surf[:, 0] - x0) <= 0.01) & (np.abs(surf[:, 1]) <= 0.15)
+    path = build_cut_path(cl(paint), cl(np.ones(len(surf), bool)), CFG)
+    assert len(path.branches) == 1
+    p = path.branches[0].points
+    p = p if p[-1, 1] > p[0, 1] else p[::-1]
+    assert np.diff(p[:, 1]).min() > -0.001, "the cut never goes back along the line"
+    assert np.abs(p[:, 0] - x0).max() < 0.003
+    length = 0.3 - 2 * 0.01 + 2 * h  # from cap centre to cap centre, up and down the step
+    assert path.branches[0].length_m == pytest.approx(length, abs=0.015)
+
+
+def test_paint_round_a_thin_bar_is_no_loop_and_crosses_each_bar_along_the_line():
+    """Paint wrapped round 8 mm bars (a basket's rods) is not a loop anyone drew: a ring narrower
+    than its band would have its hole painted over. Each bar gets a short cut along the line,
+    over the bar's top."""
+    from planners.cutpath.geometry import painted_over
+
+    th = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    ring = np.column_stack([np.zeros(24), 0.005 * np.cos(th), 0.005 * np.sin(th)])
+    rng = np.random.default_rng(2)
+    a, x = rng.uniform(0, 2 * np.pi, 4000), rng.uniform(-0.01, 0.01, 4000)
+    wrapped = np.column_stack([x, 0.004 * np.cos(a), 0.004 * np.sin(a)])  # 20 mm of paint along the bar
+    assert painted_over(ring, wrapped, 0.005)
+    big = 0.06 * np.column_stack([np.cos(th), np.sin(th), np.zeros(24)])
+    r = rng.uniform(0.05, 0.07, 20000)
+    b = rng.uniform(0, 2 * np.pi, 20000)
+    assert not painted_over(big, np.column_stack([r * np.cos(b), r * np.sin(b), np.zeros(20000)]), 0.005)
+
+    rc, rr = 0.2, 0.008  # catalog.basket: rods on a half cylinder, the line round it over 13 of them
+    rods = []
+    for ang in np.radians(np.arange(-72, 73, 12)):
+        c = np.array([0.0, rc * np.sin(ang), rc * np.cos(ang)])
+        phi, x = rng.uniform(ang - np.pi / 2, ang + np.pi / 2, 3000), rng.uniform(-0.06, 0.06, 3000)
+        rods.append(c + np.column_stack([x, rr * np.sin(phi), rr * np.cos(phi)]))  # the outer half: what is seen
+    surf = np.vstack(rods)
+    out = surf * [0, 1, 1]
+    eye = surf + 0.4 * out / np.linalg.norm(out, axis=1, keepdims=True)
+    psi = np.arctan2(surf[:, 1], surf[:, 2])
+    m = np.abs(surf[:, 0] - 0.02 * psi) <= 0.0125
+    from planners.clouds import Cloud
+
+    def cl(k):
+        return Cloud(surf[k].astype(np.float32), np.zeros((k.sum(), 3), np.uint8), eye[k].astype(np.float32))
+
+    path = build_cut_path(cl(m), cl(np.ones(len(surf), bool)), CFG)
+    assert not any(b.closed for b in path.branches)
+    assert len(path.branches) == 13
+    for b in path.branches:
+        c = b.points
+        psi = np.arctan2(c[:, 1], c[:, 2])
+        assert np.abs(c[:, 0] - 0.02 * psi).max() < 0.003, "each cut runs along the line, across its rod"

@@ -15,7 +15,10 @@ SNAP_NEIGHBOURS = 8
 #: surface points in a normal's PCA at most (the nearest of those within the radius)
 NORMAL_NEIGHBOURS = 64
 _MIN_NORMAL_NEIGHBOURS = 6
-_END_WEIGHT = 10.0  # keeps the spline's ends on the junction/end nodes that branches share
+_END_WEIGHT = 10.0
+#: two sides of a corner that turn by less than this, or by more than 180 minus this, do not meet at
+#: a well-defined point (the intersection of near-parallel lines moves by 1/sin of their angle)
+MEET_DEG = 30.0  # keeps the spline's ends on the junction/end nodes that branches share
 
 
 def arc_length(p: np.ndarray) -> np.ndarray:
@@ -32,6 +35,17 @@ def resample(p: np.ndarray, spacing: float) -> np.ndarray:
     n = max(int(round(s[-1] / spacing)), 1) + 1
     t = np.linspace(0.0, s[-1], n)
     return np.column_stack([np.interp(t, s, p[:, k]) for k in range(3)])
+
+
+def resample_holding(p: np.ndarray, spacing: float, held: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``resample`` that keeps the vertices ``held`` (indices, a corner the torch pivots at): each
+    stretch between them evenly spaced on its own. Returns (points, the held vertices' new indices)."""
+    held = np.unique(np.asarray(held, dtype=np.int64))
+    held = held[(held > 0) & (held < len(p) - 1)]
+    bounds = [0, *held.tolist(), len(p) - 1]
+    parts = [resample(p[a:b + 1], spacing) for a, b in zip(bounds[:-1], bounds[1:])]
+    at = np.cumsum([len(q) - 1 for q in parts])[:-1]
+    return np.vstack([parts[0]] + [q[1:] for q in parts[1:]]), at.astype(np.int64)
 
 
 def corners(p: np.ndarray, scale_m: float, min_turn_deg: float) -> np.ndarray:
@@ -58,36 +72,34 @@ def corners(p: np.ndarray, scale_m: float, min_turn_deg: float) -> np.ndarray:
 
 def smooth_resample(poly: np.ndarray, spacing_m: float, smoothing_m: float, closed: bool = False, *,
                     corner_scale_m: float = 0.0, corner_deg: float = 180.0,
-                    paint: np.ndarray | None = None) -> np.ndarray:
+                    paint: np.ndarray | None = None, held: list | None = None) -> np.ndarray:
     """The polyline split at its sharp corners (``corners``; none when ``corner_scale_m`` is 0), each
     piece smoothed and resampled on its own (``_smooth_piece``) with the corner points held: a
-    smoothing spline would cut a painted corner, the torch pivots there instead."""
+    smoothing spline would cut a painted corner, the torch pivots there instead. The corner points
+    are appended to ``held`` when given (``on_surface`` keeps them as vertices)."""
     p = _checks.points(poly, "poly", 2)
     cut = corners(p, corner_scale_m, corner_deg) if corner_scale_m > 0 and not closed else np.zeros(0, np.int64)
     if len(cut) == 0:
         return _smooth_piece(p, spacing_m, smoothing_m, closed)
     p = p.copy()
-    for i in cut:  # a few corners
-        p[i] = _corner_point(p, int(i), corner_scale_m, paint)
+    s = arc_length(p)
+    at = np.concatenate([[-np.inf], s[cut], [np.inf]])
+    half = band_half_width(p, paint, spacing_m) if paint is not None and len(paint) else 0.0
+    for k, i in enumerate(cut):  # a few corners; each side fitted up to the next corner at most
+        p[i] = _corner_point(p, int(i), corner_scale_m, paint, (at[k], at[k + 2]), half or corner_scale_m / 3)
+    if held is not None:
+        held.extend(p[cut])
     bounds = [0, *cut.tolist(), len(p) - 1]
     pieces = [_smooth_piece(p[a:b + 1], spacing_m, smoothing_m, False) for a, b in zip(bounds[:-1], bounds[1:])
               if b > a]
     return np.vstack([pieces[0]] + [q[1:] for q in pieces[1:]])
 
 
-def center_on_paint(points: np.ndarray, paint: np.ndarray, spacing_m: float, closed: bool = False,
-                    reach_m: float = 0.03, max_turn_deg: float = 20.0) -> np.ndarray:
-    """Each point moved across the line to the middle of the paint beside it: the centroid of the
-    paint in a slab one spacing thick across the line, within the band's half width (the median
-    over the points of how far the paint reaches, at most ``reach_m``), the move across the line
-    only. A sprayed band is symmetric about its centre line; the voxel skeleton and its smoothing
-    are not (up to half a voxel off, more where thinning leans). Points where the line turns by
-    more than ``max_turn_deg`` within the band stay: a corner's slab holds both of its sides."""
-    p = _checks.points(points, "points", 1)
-    paint = np.asarray(paint, dtype=np.float64).reshape(-1, 3)
-    if len(p) < 3 or len(paint) < 10:
-        return p
-    t = tangents(p, closed)
+def _beside(p: np.ndarray, t: np.ndarray, paint: np.ndarray, spacing_m: float,
+            reach_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The paint beside each point: for the paint within ``reach_m`` in a slab one spacing thick
+    across the line, (point index, offset across the line, its length), and the band's half width:
+    the median over the points of how far the paint reaches (0 when none is beside the line)."""
     pairs = cKDTree(p).sparse_distance_matrix(cKDTree(paint), reach_m, output_type="coo_matrix")
     i, j = pairs.row, pairs.col
     v = paint[j] - p[i]
@@ -96,12 +108,61 @@ def center_on_paint(points: np.ndarray, paint: np.ndarray, spacing_m: float, clo
     i, v, along = i[slab], v[slab], along[slab]
     across = v - along[:, None] * t[i]
     r = np.linalg.norm(across, axis=1)
-    if len(r) == 0:
-        return p
     reach = np.zeros(len(p))
     np.maximum.at(reach, i, r)
-    half = float(np.median(reach[reach > 0])) * 1.2  # the band's half width, with a little room
+    return i, across, r, float(np.median(reach[reach > 0])) if (reach > 0).any() else 0.0
+
+
+def band_half_width(points: np.ndarray, paint: np.ndarray, spacing_m: float, closed: bool = False,
+                    reach_m: float = 0.03) -> float:
+    """Half the width of the sprayed band along a line (m): how far the paint reaches across it."""
+    p = _checks.points(points, "points", 1)
+    paint = np.asarray(paint, dtype=np.float64).reshape(-1, 3)
+    if len(p) < 2 or len(paint) == 0:
+        return 0.0
+    return _beside(p, tangents(p, closed), paint, spacing_m, reach_m)[3]
+
+
+def painted_over(loop: np.ndarray, paint: np.ndarray, spacing_m: float) -> bool:
+    """A closed stroke no worker drew: a loop narrower than the band of paint around it would have
+    its hole painted over. The skeleton makes such rings where paint wraps a thin bar (a basket's
+    rod seen from several sides); that paint is a short cut across the bar (``pieces``), not a ring."""
+    p = _checks.points(loop, "loop", 1)
+    if len(p) < 3:
+        return False
+    span = float(np.max(np.linalg.norm(p[:, None] - p[None], axis=2)))  # a loop is a few dozen points
+    return span < 2.0 * band_half_width(p, paint, spacing_m, closed=True)
+
+
+def center_on_paint(points: np.ndarray, paint: np.ndarray, spacing_m: float, closed: bool = False,
+                    reach_m: float = 0.03, max_turn_deg: float = 20.0, normals: np.ndarray | None = None) -> np.ndarray:
+    """Each point moved across the line to the middle of the paint beside it: the centroid of the
+    paint in a slab one spacing thick across the line, within the band's half width (the median
+    over the points of how far the paint reaches, at most ``reach_m``), the move across the line
+    only. A sprayed band is symmetric about its centre line; the voxel skeleton and its smoothing
+    are not (up to half a voxel off, more where thinning leans). Points where the line turns by
+    more than ``max_turn_deg`` within the band stay: a corner's slab holds both of its sides. With
+    the surface ``normals`` (K,3) the move stays in the surface, and paint off it by more than a
+    third of the half width (the far face of a thin plate the line wraps over) is not counted."""
+    p = _checks.points(points, "points", 1)
+    paint = np.asarray(paint, dtype=np.float64).reshape(-1, 3)
+    if len(p) < 3 or len(paint) < 10:
+        return p
+    t = tangents(p, closed)
+    i, across, r, half = _beside(p, t, paint, spacing_m, reach_m)
+    if len(r) == 0:
+        return p
+    half *= 1.2  # the band's half width, with a little room
     inside = r <= half
+    if normals is not None:  # across the line within the surface: along t x n
+        n = np.asarray(normals, dtype=np.float64)[i]
+        side = np.cross(t[i], n)
+        norm = np.linalg.norm(side, axis=1)
+        good = norm > 0.5  # a normal far from the travel direction
+        side = side / np.maximum(norm, 1e-12)[:, None]
+        off = np.einsum("kj,kj->k", across, n)
+        inside &= ~good | (np.abs(off) <= half / 3.0)
+        across = np.where(good[:, None], np.einsum("kj,kj->k", across, side)[:, None] * side, across)
     count = np.bincount(i[inside], minlength=len(p))
     shift = np.stack([np.bincount(i[inside], across[inside, k], minlength=len(p)) for k in range(3)], axis=1)
     shift /= np.maximum(count, 1)[:, None]
@@ -114,15 +175,65 @@ def center_on_paint(points: np.ndarray, paint: np.ndarray, spacing_m: float, clo
     return out
 
 
-def _corner_point(p: np.ndarray, i: int, scale_m: float, paint: np.ndarray | None = None) -> np.ndarray:
+def end_caps(points: np.ndarray, paint: np.ndarray, metal: cKDTree, half_m: float, spacing_m: float,
+             start: bool = True, end: bool = True) -> np.ndarray:
+    """A free end of a stroke placed at the centre of the paint's end cap. A sprayed stroke ends
+    in a round cap half a band width beyond the line the worker drew: the medial axis of the band
+    ends at the cap's centre, the voxel skeleton reaches into the cap or stops short of it. The
+    end moves along the line (trimmed or extended) to half the width (``half_m``) back from where
+    the paint stops. Where the metal stops with the paint (the line runs off an edge: no surface in
+    ``metal`` half a width beyond the paint) the end goes to the edge: the cut must leave the metal."""
+    p = _checks.points(points, "points", 1)
+    paint = np.asarray(paint, dtype=np.float64).reshape(-1, 3)
+    if len(p) < 3 or len(paint) == 0 or not half_m > 0:
+        return p
+    tree = cKDTree(paint)
+    if start:
+        p = _end_cap(p[::-1], paint, tree, metal, half_m, spacing_m)[::-1]
+    if end:
+        p = _end_cap(p, paint, tree, metal, half_m, spacing_m)
+    return p
+
+
+def _end_cap(p: np.ndarray, paint: np.ndarray, tree: cKDTree, metal: cKDTree, half: float,
+             spacing: float) -> np.ndarray:
+    s = arc_length(p)
+    e = p[-1]
+    back = p[min(int(np.searchsorted(s, s[-1] - 2.0 * half)), len(p) - 2)]  # the direction over a band width
+    t = e - back
+    t /= max(np.linalg.norm(t), 1e-12)
+    v = paint[tree.query_ball_point(e, 3.0 * half)] - e
+    if len(v) == 0:
+        return p
+    along = v @ t
+    across = np.linalg.norm(v - along[:, None] * t, axis=1)
+    tip = float(along[across <= half].max(initial=-np.inf))  # where the paint stops, along the line
+    if not np.isfinite(tip):
+        return p
+    on_metal = len(metal.query_ball_point(e + (tip + half) * t, 0.5 * half)) > 0
+    goal = tip - half if on_metal else tip  # the cap's centre, or the edge the metal and the paint stop at
+    if goal < 0.0:  # the skeleton reached into the cap: trimmed back to its centre
+        keep = (p - e) @ t < goal
+        keep[0] = True
+        return np.vstack([p[keep], e + goal * t])
+    steps = np.arange(spacing, goal - 0.25 * spacing, spacing)  # it stopped short: extended along its direction
+    return np.vstack([p, e + np.append(steps, goal)[:, None] * t]) if goal > 0.25 * spacing else p
+
+
+def _corner_point(p: np.ndarray, i: int, scale_m: float, paint: np.ndarray | None = None,
+                  within: tuple[float, float] = (-np.inf, np.inf), half_m: float | None = None) -> np.ndarray:
     """Where the two sides of a corner meet: thinning rounds a painted corner off (by up to a line
     width at an acute one), so the corner is put where straight fits of the two sides, from one
     scale to three scales away, come closest; kept as it is when they do not nearly meet. With the
     ``paint`` cloud, each side is fitted to the paint along it (a sprayed band is symmetric about
-    its centre line), not to the voxel skeleton."""
+    its centre line), not to the voxel skeleton. The sides end at the neighbouring corners (arc
+    lengths ``within``): a fit across one would rebuild this corner from the next side over. The
+    paint fitted lies within the band's half width ``half_m`` of a side, and the corner moves at most
+    as far as thinning can round it off: half_m / sin(half the corner's inside angle)."""
+    half_m = scale_m / 3 if half_m is None else half_m
     s = arc_length(p)
-    before = (s < s[i] - scale_m) & (s > s[i] - 3.0 * scale_m)
-    after = (s > s[i] + scale_m) & (s < s[i] + 3.0 * scale_m)
+    before = (s < s[i] - scale_m) & (s > max(s[i] - 3.0 * scale_m, within[0]))
+    after = (s > s[i] + scale_m) & (s < min(s[i] + 3.0 * scale_m, within[1]))
     if before.sum() < 3 or after.sum() < 3:
         return p[i]
     lines = []
@@ -133,22 +244,29 @@ def _corner_point(p: np.ndarray, i: int, scale_m: float, paint: np.ndarray | Non
             v = paint - c
             along = v @ d
             half = 0.5 * float(np.ptp(p[m] @ d))
-            near = (np.abs(along) <= half) & (np.linalg.norm(v - along[:, None] * d, axis=1) <= scale_m)
+            near = (np.abs(along) <= half) & (np.linalg.norm(v - along[:, None] * d, axis=1) <= 1.2 * half_m)
             if near.sum() >= 10:
-                c = paint[near].mean(axis=0)
-                d = np.linalg.svd(paint[near] - c, full_matrices=False)[2][0]
+                c_p = paint[near].mean(axis=0)
+                d_p = np.linalg.svd(paint[near] - c_p, full_matrices=False)[2][0]
+                if abs(d_p @ d) >= np.cos(np.radians(0.5 * MEET_DEG)):  # else paint from beyond the side
+                    c, d = c_p, d_p                                       # (a hairpin's other leg) bent it
         lines.append((c, d))
     (c1, d1), (c2, d2) = lines
+    d1 = d1 if d1 @ (p[i] - c1) >= 0 else -d1  # both along the travel
+    d2 = d2 if d2 @ (c2 - p[i]) >= 0 else -d2
+    if abs(float(np.linalg.norm(np.cross(d1, d2)))) < np.sin(np.radians(MEET_DEG)):
+        return p[i]  # nearly parallel sides (a hairpin over a plate's rim, a slight bend): no point where they meet
     w = c1 - c2
     a, b, e = d1 @ d1, d1 @ d2, d2 @ d2
     den = a * e - b * b
-    if den < 1e-9:  # parallel sides: no corner to rebuild
-        return p[i]
     t1 = (b * (d2 @ w) - e * (d1 @ w)) / den
     t2 = (a * (d2 @ w) - b * (d1 @ w)) / den
+    if t1 < 0 or t2 > 0:  # the sides would meet behind where they come from
+        return p[i]
     q1, q2 = c1 + t1 * d1, c2 + t2 * d2
     q = 0.5 * (q1 + q2)
-    if np.linalg.norm(q1 - q2) > 0.25 * scale_m or np.linalg.norm(q - p[i]) > 1.5 * scale_m:
+    inside = np.arccos(np.clip(-d1 @ d2, -1.0, 1.0))  # the corner's inside angle
+    if np.linalg.norm(q1 - q2) > 0.25 * scale_m or np.linalg.norm(q - p[i]) > half_m / np.sin(0.5 * inside):
         return p[i]
     return q
 
@@ -245,13 +363,21 @@ class Surface:
         return p - np.einsum("mj,mj->m", p - c, n)[:, None] * n
 
 
-def on_surface(points: np.ndarray, surface: Surface, spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
+def on_surface(points: np.ndarray, surface: Surface, spacing_m: float,
+               corners: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Snap evenly spaced points onto the surface and even them out again, thrice (snapping
-    stretches the steps where it pushes a cut corner back out). Returns (points, outward normals)."""
+    stretches the steps where it pushes a cut corner back out); the points nearest to ``corners``
+    (M,3) stay vertices. Returns (points, outward normals)."""
     p = points
+    held = np.zeros(0, dtype=np.int64)
+    if corners is not None and len(corners) and len(p) > 2:
+        held = cKDTree(p).query(np.asarray(corners, dtype=np.float64).reshape(-1, 3))[1]
     for _ in range(3):
         n = surface.normals(p)
-        p = resample(surface.snap(p, n), spacing_m) if len(p) > 1 else surface.snap(p, n)
+        if len(p) > 1:
+            p, held = resample_holding(surface.snap(p, n), spacing_m, held)
+        else:
+            p = surface.snap(p, n)
     n = surface.normals(p)
     return surface.snap(p, n), n
 

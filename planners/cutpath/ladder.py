@@ -185,8 +185,12 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
                     free[lay[need], rungs[need]] = res
                     hit_layers.update(lay[need][~res].tolist())
         if not hit_layers and is_free is not None:
-            # the rungs are free: now the motion between them (joint-space steps of at most 1 degree)
+            # the rungs are free: now the motion between them (joint-space steps of at most 1 degree);
+            # once it is clear segment by segment, the runs once more as wholes: the samples of a
+            # whole run (what the cut will be checked at) fall elsewhere than those of the segments
             hit_edges = _check_motion(runs, chosen, Qf, tips, S, cfg, max_vel, is_free, seg_free)
+            if not hit_edges:
+                hit_edges = _check_motion(runs, chosen, Qf, tips, S, cfg, max_vel, is_free, set())
             for k, a, b in hit_edges:
                 blocked[k, a, b] = True
                 motion_hits[k] += 1

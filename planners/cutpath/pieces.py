@@ -80,11 +80,6 @@ def short_pieces(drawing: np.ndarray, branches: list[np.ndarray], surface: Surfa
                 ignored += 1
                 continue
             d = vec[:, -1]
-        n = surface.normals(centres[i:i + 1])[0]
-        d = d - (d @ n) * n  # along the surface
-        if np.linalg.norm(d) < 1e-9:
-            ignored += 1
-            continue
         d /= np.linalg.norm(d)
         s = (P - centres[i]) @ d
         lateral = np.linalg.norm((P - centres[i]) - s[:, None] * d[None], axis=1)

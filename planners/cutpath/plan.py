@@ -10,8 +10,8 @@ import numpy as np
 from planners.clouds import Cloud
 from planners.cutpath import _checks
 from planners.cutpath.config import CutPathConfig
-from planners.cutpath.geometry import (Surface, arc_length, center_on_paint, on_surface, pivots, smooth_resample,
-                                      torch_poses)
+from planners.cutpath.geometry import (Surface, arc_length, band_half_width, center_on_paint, end_caps, on_surface,
+                                      painted_over, pivots, smooth_resample, torch_poses)
 from planners.cutpath.graph import END, JUNCTION, LOOP, drawing_graph, through_junctions
 from planners.cutpath.ladder import RECONFIGURE, cut_spline, every_degree, plan_ladder, tilt_directions
 from planners.cutpath.nozzle import NozzleCheck
@@ -75,16 +75,23 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | No
     for kind in g.kinds:
         label.append({JUNCTION: "J", END: "E", LOOP: "L"}[kind] + str(counters[kind]))
         counters[kind] += 1
-    branches = []
+    branches, strokes = [], []
     for poly, a, b in through_junctions(g):  # a handful of strokes: a crossing is cut straight through
         closed = a == b and g.kinds[a] == LOOP
+        if a == b and painted_over(poly, d_xyz, cfg.spacing_m):
+            continue  # paint wrapped round a bar: its pieces below cut across it
+        strokes.append(poly)
+        held: list = []  # the corners: the torch pivots on them, resampling keeps them
         pts = smooth_resample(poly, cfg.spacing_m, cfg.smoothing_voxels * cfg.voxel_m, closed,
-                              corner_scale_m=cfg.corner_scale_m, corner_deg=cfg.corner_deg, paint=d_xyz)
-        pts = center_on_paint(pts, d_xyz, cfg.spacing_m, closed)
-        pts, normals = pivots(*on_surface(pts, surf, cfg.spacing_m), cfg.pivot_step_deg)
+                              corner_scale_m=cfg.corner_scale_m, corner_deg=cfg.corner_deg, paint=d_xyz, held=held)
+        pts = center_on_paint(pts, d_xyz, cfg.spacing_m, closed, normals=surf.normals(pts))
+        if not closed and END in (g.kinds[a], g.kinds[b]):
+            pts = end_caps(pts, d_xyz, surf.tree, band_half_width(pts, d_xyz, cfg.spacing_m), cfg.spacing_m,
+                           start=g.kinds[a] == END, end=g.kinds[b] == END)
+        pts, normals = pivots(*on_surface(pts, surf, cfg.spacing_m, np.array(held)), cfg.pivot_step_deg)
         poses = torch_poses(pts, normals, cfg.standoff_m, closed)
         branches.append(Branch(pts, normals, poses, np.full(len(pts), cfg.travel_speed_mps), label[a], label[b], closed))
-    pieces, ignored = short_pieces(d_xyz, g.branches, surf, voxel_m=cfg.voxel_m, spacing_m=cfg.spacing_m,
+    pieces, ignored = short_pieces(d_xyz, strokes, surf, voxel_m=cfg.voxel_m, spacing_m=cfg.spacing_m,
                                    bridge_max_m=cfg.bridge_max_m, min_piece_m=cfg.min_piece_m)
     for j, piece in enumerate(pieces):  # a broken line: a short cut through each piece of paint
         pts, normals = pivots(*on_surface(piece.line, surf, cfg.spacing_m), cfg.pivot_step_deg)
