@@ -86,6 +86,30 @@ def test_a_reachable_line_is_one_run_held_upright(kin):
     np.testing.assert_allclose(tip[:, :3, 3], run.poses[:, :3, 3], atol=2e-4)
 
 
+def test_rungs_of_many_branches_in_one_call_are_each_branchs_own(kin):
+    """solve_rungs batches every branch's IK; no branch's sweep takes a seed from its neighbour's
+    layers, so each branch gets exactly what it gets alone. Reversed (Branch.reversed), the rungs
+    are the same solutions with the tilts renamed: they still hold the reversed poses."""
+    from planners.cutpath.ladder import reversal_permutation, solve_rungs
+    from planners.cutpath.model import Branch
+
+    a = straight([0.35, -0.15], [0.55, 0.15])
+    b = straight([0.30, 0.20], [0.45, 0.25], z=0.2)
+    both = solve_rungs(kin, [a[2], b[2]], PANDA_Q_READY, CFG)
+    for (_, _, poses, _), r in zip((a, b), both):
+        alone = solve_rungs(kin, [poses], PANDA_Q_READY, CFG)[0]
+        np.testing.assert_array_equal(r.ok, alone.ok)
+        np.testing.assert_allclose(r.Q, alone.Q, equal_nan=True)
+    pts, normals, poses, _ = b
+    back = Branch(pts, normals, poses, np.full(len(pts), 0.01), "a", "b").reversed()
+    r = both[1].reversed(reversal_permutation(CFG))
+    D = tilt_directions(CFG)
+    np.testing.assert_allclose(r.axes, np.einsum("nij,oj->noi", back.poses[:, :3, :3], D), atol=1e-12)
+    T = kin.fk_batch(r.Q[r.ok])
+    np.testing.assert_allclose(T[:, :3, 3], np.broadcast_to(r.tips[..., None, :], r.Q.shape[:3] + (3,))[r.ok], atol=2e-4)
+    np.testing.assert_allclose(T[:, :3, 2], np.broadcast_to(r.axes[..., None, :], r.Q.shape[:3] + (3,))[r.ok], atol=2e-3)
+
+
 def test_the_torch_tilts_within_its_cone_to_clear_an_obstacle(kin):
     """Configurations holding the torch upright are forbidden on the middle third: the ladder
     leans the torch there instead of giving up, and stays one continuous run."""

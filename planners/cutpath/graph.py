@@ -315,7 +315,6 @@ def _extend_ends(g: _Builder, xyz: np.ndarray, tree: cKDTree, voxel: float, roun
             if g.kind[k] != END or len(p) < 2:
                 continue
             q = p[::-1] if at_start else p  # q[-1] is this end
-            moved, hw = False, None
             for _ in range(rounds):
                 to_end = np.concatenate([np.cumsum(np.linalg.norm(np.diff(q, axis=0), axis=1)[::-1])[::-1], [0.0]])
                 j = min(int(np.flatnonzero(to_end <= back)[0]), len(q) - 2)
@@ -327,15 +326,7 @@ def _extend_ends(g: _Builder, xyz: np.ndarray, tree: cKDTree, voxel: float, roun
                 more = _paint_ahead(q[-1], t, xyz, tree, hw, voxel)
                 if more is None:
                     break
-                q, moved = np.vstack([q, more]), True
-            if not moved and hw is not None:  # thinning may also stop inside the cap
-                e = _cap_centre(q[-1], xyz, tree, hw)
-                if np.linalg.norm(e - q[-1]) > voxel:  # not a round cap (an edge, other paint near)
-                    e = q[-1]
-                beyond = (q[:-1] - e) @ t >= -0.25 * voxel
-                beyond[: max(len(q) - 1 - int(np.ceil(back / voxel)), 1)] = False  # only near the end
-                if not beyond.all():
-                    q = np.vstack([q[:-1][~beyond], e])
+                q = np.vstack([q, more])
             g.pos[k] = q[-1].copy()
             p = q[::-1] if at_start else q
         g.branches[i][0] = p

@@ -112,11 +112,41 @@ def _global_seeds(kin: Kinematics, q_start: np.ndarray, count: int, margin: floa
     return np.array(seeds)
 
 
-def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: np.ndarray, cfg: CutPathConfig,
-                is_free: IsFree | None, max_vel: np.ndarray, nozzle_free: NozzleFree | None = None) -> Ladder:
-    """Runs and gaps along one branch's nominal torch poses (N,4,4) timed by ``times`` (N,).
-    ``nozzle_free(tips, axes)``: whether the nozzle is clear of the metal at each tilt (``nozzle.py``);
-    a tilt whose nozzle is not is no rung."""
+@dataclass
+class Rungs:
+    """A branch's IK solutions: every layer (path point) x tilt x seed."""
+
+    tips: np.ndarray  # (N,O,3) torch tip per layer and tilt (tilted about the paint point)
+    axes: np.ndarray  # (N,O,3) torch axis in the base frame
+    in_reach: np.ndarray  # (N,O) inside the arm's reach sphere
+    Q: np.ndarray  # (N,O,S,dof) the solutions (best attempts where not ok)
+    ok: np.ndarray  # (N,O,S)
+
+    def reversed(self, perm: np.ndarray) -> "Rungs":
+        """The same rungs for the branch run the other way (``Branch.reversed``: layers reversed,
+        each pose turned half a turn about its axis, so tilt o is tilt perm[o] of the other way)."""
+        return Rungs(self.tips[::-1][:, perm], self.axes[::-1][:, perm], self.in_reach[::-1][:, perm],
+                     self.Q[::-1][:, perm], self.ok[::-1][:, perm])
+
+
+def reversal_permutation(cfg: CutPathConfig) -> np.ndarray:
+    """perm[o]: the tilt of the reversed pose frame (x and y negated) that points where tilt o does."""
+    D = tilt_directions(cfg)
+    flipped = D * [-1.0, -1.0, 1.0]
+    d = np.linalg.norm(flipped[:, None] - D[None], axis=2)
+    return d.argmin(axis=1)
+
+
+def solve_rungs(kin: Kinematics, branch_poses: list[np.ndarray], q_start: np.ndarray,
+                cfg: CutPathConfig) -> list[Rungs]:
+    """The rungs of several branches in one batched IK (a basket's dozen short cuts cost one call,
+    not a dozen): each seed solved at the normal of every layer, then from there at every tilt,
+    then gaps in a track filled from the neighbouring layer's solution in the same track (never
+    across two branches)."""
+    sizes = [len(P) for P in branch_poses]
+    if not sizes or sum(sizes) == 0:
+        return []
+    poses = np.concatenate(branch_poses)
     N = len(poses)
     D = tilt_directions(cfg)  # (O,3)
     O, S, dof = len(D), cfg.ik_seeds, kin.dof
@@ -124,9 +154,6 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
     tips = poses[:, None, :3, 3] + cfg.standoff_m * (poses[:, None, :3, 2] - axes)  # tilt about the paint point
     centre, radius = kin.reach_sphere("cam")
     in_reach = np.linalg.norm(tips - centre, axis=2) <= radius  # (N,O)
-
-    # 1. each seed solved at the normal of every layer, 2. from there at every tilt, 3. gaps in a
-    # track filled from the neighbouring layer's solution in the same track
     seeds = _global_seeds(kin, q_start, S, cfg.ik_margin_rad)
     # a fixed roll keeps the torch's x along the travel (the nominal pose's x made orthogonal to the axis)
     xs = None if cfg.free_roll else np.broadcast_to(poses[:, None, :3, 0], axes.shape)
@@ -138,18 +165,37 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
     ok = np.zeros((N, O, S), dtype=bool)
     seed = np.broadcast_to(Qn[:, None], (N, O, S, dof))
     Q[:], ok[:] = _solve(kin, tips, axes, seed, np.broadcast_to(okn[:, None], (N, O, S)), cfg, xs)
+    first = np.zeros(N, dtype=bool)
+    first[np.cumsum([0] + sizes[:-1])] = True  # each branch's first layer
+    last = np.roll(first, -1)  # each branch's last layer
     for direction in (1, -1, 1):  # sweeps: a track that failed takes its neighbour's solution as seed
         src = np.roll(Q, direction, axis=0)
         src_ok = np.roll(ok, direction, axis=0)
-        if direction == 1:
-            src_ok[0] = False
-        else:
-            src_ok[-1] = False
+        src_ok[first if direction == 1 else last] = False
         todo = ~ok & src_ok
         if not todo.any():
             continue
         Qs, oks = _solve(kin, tips, axes, src, todo, cfg, xs)
         Q[todo], ok[todo] = Qs[todo], oks[todo]
+    cuts = np.cumsum(sizes)[:-1]
+    return [Rungs(*parts) for parts in zip(*(np.split(x, cuts) for x in (tips, axes, in_reach, Q, ok)))]
+
+
+def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: np.ndarray, cfg: CutPathConfig,
+                is_free: IsFree | None, max_vel: np.ndarray, nozzle_free: NozzleFree | None = None,
+                rungs: Rungs | None = None) -> Ladder:
+    """Runs and gaps along one branch's nominal torch poses (N,4,4) timed by ``times`` (N,).
+    ``nozzle_free(tips, axes)``: whether the nozzle is clear of the metal at each tilt (``nozzle.py``);
+    a tilt whose nozzle is not is no rung. ``rungs``: this branch's from ``solve_rungs`` (solved here
+    from ``q_start`` when None)."""
+    N = len(poses)
+    D = tilt_directions(cfg)  # (O,3)
+    O, S, dof = len(D), cfg.ik_seeds, kin.dof
+    if rungs is None:
+        rungs = solve_rungs(kin, [poses], q_start, cfg)[0]
+    if rungs.Q.shape[:3] != (N, O, S):
+        raise ValueError(f"rungs for {rungs.Q.shape[:3]} layers x tilts x seeds, the branch needs {(N, O, S)}")
+    tips, axes, in_reach, Q, ok = rungs.tips, rungs.axes, rungs.in_reach, rungs.Q, rungs.ok
 
     # nodes: (layer, rung) with rung = o*S + s
     Qf = Q.reshape(N, O * S, dof)

@@ -13,7 +13,8 @@ from planners.cutpath.config import CutPathConfig
 from planners.cutpath.geometry import (Surface, arc_length, band_half_width, center_on_paint, end_caps, on_surface,
                                       painted_over, pivots, smooth_resample, torch_poses)
 from planners.cutpath.graph import END, JUNCTION, LOOP, drawing_graph, through_junctions
-from planners.cutpath.ladder import RECONFIGURE, cut_spline, every_degree, plan_ladder, tilt_directions
+from planners.cutpath.ladder import (RECONFIGURE, Rungs, cut_spline, every_degree, plan_ladder, reversal_permutation,
+                                     solve_rungs, tilt_directions)
 from planners.cutpath.nozzle import NozzleCheck
 from planners.cutpath.pieces import short_pieces
 from planners.cutpath.model import OK, Branch, CutPath, Gap
@@ -115,39 +116,50 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | No
 
 
 
+def _stand_off_solutions(kin: Kinematics, T: np.ndarray, q_near: np.ndarray, cfg: CutPathConfig,
+                         distances: tuple[float, ...]) -> list[np.ndarray]:
+    """Per distance, the configurations holding the torch that far back from pose T, pointing at
+    it, along each axis of the tilt cone (the cut's own axis first), nearest to ``q_near`` in joint
+    space first; all distances in one batched IK call (a small batch costs its iterations, not its size)."""
+    D = tilt_directions(cfg)
+    axes = np.einsum("ij,oj->oi", T[:3, :3], D)
+    k = len(distances)
+    tips = T[:3, 3] - np.repeat(np.asarray(distances, dtype=np.float64), len(D))[:, None] * np.tile(axes, (k, 1))
+    Q, ok = solve_axis_ik_batch(kin, tips, np.tile(axes, (k, 1)), np.tile(q_near, (k * len(D), 1)),
+                                margin=cfg.ik_margin_rad,
+                                x_axes=None if cfg.free_roll else np.tile(T[:3, 0], (k * len(D), 1)))
+    out = []
+    for Qd, okd in zip(np.split(Q, k), np.split(ok, k)):
+        Qd = Qd[okd]
+        out.append(Qd[np.argsort(np.abs(Qd - q_near).max(axis=1), kind="stable")])
+    return out
+
+
 def _stand_offs(kin: Kinematics, T: np.ndarray, q_near: np.ndarray, cfg: CutPathConfig,
                 is_free: IsFree | None, distances: tuple[float, ...] | None = None):
     """Configurations holding the torch ``approach_m`` back from the cut's first (or last) pose,
     pointing at it, so that the torch plunges straight in, best first: along the cut's own torch
     axis, then along the other axes of the tilt cone, then half as far back; the free solutions
     nearest to ``q_near`` in joint space first."""
-    D = tilt_directions(cfg)
-    axes = np.einsum("ij,oj->oi", T[:3, :3], D)
-    tip = T[:3, 3]
-    for dist in distances or (cfg.approach_m, 0.5 * cfg.approach_m):
-        Q, ok = solve_axis_ik_batch(kin, tip - dist * axes, axes, np.tile(q_near, (len(D), 1)),
-                                    margin=cfg.ik_margin_rad,
-                                    x_axes=None if cfg.free_roll else np.tile(T[:3, 0], (len(D), 1)))
-        cand = np.flatnonzero(ok)
-        cand = cand[_free(is_free, Q[cand])]
-        for k in cand[np.argsort(np.abs(Q[cand] - q_near).max(axis=1), kind="stable")]:
-            yield Q[k].copy()
-
-
-def _stand_off(kin: Kinematics, T: np.ndarray, q_near: np.ndarray, cfg: CutPathConfig,
-               is_free: IsFree | None, distances: tuple[float, ...] | None = None) -> np.ndarray | None:
-    """The best of ``_stand_offs``, None when there is none."""
-    return next(_stand_offs(kin, T, q_near, cfg, is_free, distances), None)
+    for Q in _stand_off_solutions(kin, T, q_near, cfg, distances or (cfg.approach_m, 0.5 * cfg.approach_m)):
+        for q in Q[_free(is_free, Q)]:  # collision checked a distance at a time: the first usually does
+            yield q.copy()
 
 
 def _air_routes(kin: Kinematics, q_from: np.ndarray, q_to: np.ndarray, cfg: CutPathConfig, is_free: IsFree | None,
                 park_q: np.ndarray | None):
     """Waypoint routes for an air move that is not clear straight: both ends lifted further back
     along their torch axes (2x, 4x the approach distance), then via the park pose."""
+    ks = (2.0, 4.0)
+    ups = []
+    for q in (q_from, q_to):
+        best = []
+        for Q in _stand_off_solutions(kin, kin.fk(q), q, cfg, tuple(k * cfg.approach_m for k in ks)):
+            free = Q[_free(is_free, Q)]
+            best.append(free[0] if len(free) else None)
+        ups.append(best)
     lifts = []
-    for k in (2.0, 4.0):
-        up_from = _stand_off(kin, kin.fk(q_from), q_from, cfg, is_free, (k * cfg.approach_m,))
-        up_to = _stand_off(kin, kin.fk(q_to), q_to, cfg, is_free, (k * cfg.approach_m,))
+    for up_from, up_to in zip(*ups):
         if up_from is not None and up_to is not None:
             lifts.append((up_from, up_to))
             yield [q_from, up_from, up_to, q_to]
@@ -192,10 +204,11 @@ def _cut_trajectory(b: Branch, dt: float) -> JointPath:
 
 
 def _runs_of(b: Branch, index: int, kin: Kinematics, q_here: np.ndarray, cfg: CutPathConfig,
-             is_free: IsFree | None, max_vel: np.ndarray, nozzle_free=None) -> tuple[list[Branch], list[Gap]]:
+             is_free: IsFree | None, max_vel: np.ndarray, nozzle_free=None,
+             rungs: Rungs | None = None) -> tuple[list[Branch], list[Gap]]:
     """The ladder graph along one branch: its cuttable runs as branches of their own (joint
     solutions chosen, poses tilted as chosen) and its uncut gaps with their reasons."""
-    lad = plan_ladder(kin, b.poses, b.times, q_here, cfg, is_free, max_vel, nozzle_free)
+    lad = plan_ladder(kin, b.poses, b.times, q_here, cfg, is_free, max_vel, nozzle_free, rungs)
     n = len(b)
     s = arc_length(b.points)
     runs = []
@@ -263,6 +276,9 @@ def plan_cut(path: CutPath, kin: Kinematics, q_start: np.ndarray, cfg: CutPathCo
         is_free = _with_nozzle(is_free, nozzle_free, kin)
     path.drawing_length_m = path.length_m
     todo = [(i, b) for i, b in enumerate(path.branches) if len(b) > 0]
+    cuts = [(i, b) for i, b in todo if len(b) >= 2]  # every branch's rungs in one batched IK
+    rungs = dict(zip([i for i, _ in cuts], solve_rungs(kin, [b.poses for _, b in cuts], q_here, cfg)))
+    flip = reversal_permutation(cfg)
     runs_out: list[Branch] = []
     path.gaps = []
     while todo:  # nearest branch end next: air moves stay short
@@ -270,14 +286,16 @@ def plan_cut(path: CutPath, kin: Kinematics, q_start: np.ndarray, cfg: CutPathCo
         d = [min(np.linalg.norm(b.poses[0, :3, 3] - tip), np.inf if b.closed else np.linalg.norm(b.poses[-1, :3, 3] - tip))
              for _, b in todo]
         i, b = todo.pop(int(np.argmin(d)))
+        r = rungs.get(i)
         if cfg.reverse_branches and not b.closed and len(b) > 1:
             if np.linalg.norm(b.poses[-1, :3, 3] - tip) < np.linalg.norm(b.poses[0, :3, 3] - tip):
-                b = b.reversed()
+                b = b.reversed()  # with a fixed roll the rungs hold the torch the other way round: solved anew
+                r = r.reversed(flip) if cfg.free_roll else None
         if len(b) < 2:
             path.gaps.append(Gap(i, b.points[0].copy(), b.points[-1].copy(), 0.0, "too short",
                                  "a single torch pose is not a cut"))
             continue
-        runs, gaps = _runs_of(b, i, kin, q_here, cfg, is_free, lim["max_vel"], nozzle_free)
+        runs, gaps = _runs_of(b, i, kin, q_here, cfg, is_free, lim["max_vel"], nozzle_free, r)
         path.gaps += gaps
         for rb in runs:
             _time_run(rb, kin, q_here, cfg, is_free, lim, park_q)
