@@ -222,6 +222,24 @@ def test_a_blocked_stretch_splits_the_cut_and_is_reported_not_the_whole_branch(k
     assert not (cut & uncut).any()
 
 
+def test_a_run_shorter_than_a_step_is_no_cut(kin):
+    """Where the torch can hold only a couple of poses 1 mm apart (pivot steps in an inside corner),
+    those poses are a pierce, not a cut: they join the gap around them, with its reason."""
+    pts, _, poses, times = straight([0.40, -0.02], [0.40, 0.02], spacing=0.001)
+
+    def only(lo, hi):  # the torch aimed at paint between y = lo and hi, however tilted
+        def is_free(Q):
+            T = kin.fk_batch(Q)
+            y = T[:, 1, 3] + CFG.standoff_m * T[:, 1, 2]
+            return (y > lo) & (y < hi)
+        return is_free
+
+    lad = plan_ladder(kin, poses, times, PANDA_Q_READY, CFG, only(-0.0025, -0.0005), PANDA_MAX_VELOCITY)
+    assert lad.runs == [] and [g.reason for g in lad.gaps] == [COLLISION]
+    lad = plan_ladder(kin, poses, times, PANDA_Q_READY, CFG, only(-0.008, 0.0005), PANDA_MAX_VELOCITY)
+    assert len(lad.runs) == 1 and lad.runs[0].last - lad.runs[0].first >= 5
+
+
 def test_a_line_running_out_of_reach_is_cut_as_far_as_the_arm_goes(kin):
     pts, _, poses, times = straight([0.5, 0.0], [1.3, 0.0])
     lad = plan_ladder(kin, poses, times, PANDA_Q_READY, CFG, None, PANDA_MAX_VELOCITY)
@@ -330,6 +348,30 @@ def test_a_stroke_ends_at_its_caps_centre_and_a_line_off_an_edge_at_the_edge():
     off = _band(surf, [0.45, 0.0, 0.1], [0.75, 0.0, 0.1])  # clipped by the plate's edge at x = 0.65
     p = build_cut_path(_cloud(surf[off], eye), _cloud(surf, eye), CFG).branches[0].points
     assert max(p[0, 0], p[-1, 0]) > 0.645 and min(p[0, 0], p[-1, 0]) == pytest.approx(0.45, abs=0.002)
+
+
+def test_an_end_cap_trims_only_the_line_s_last_stretch():
+    """A U-shaped stroke whose skeleton runs 8 mm into the cap at one end: trimming takes back
+    what lies beyond the cap's centre near that end, not the far leg of the U, which also lies
+    "beyond" it along the end's direction."""
+    from scipy.spatial import cKDTree
+
+    from planners.cutpath.geometry import end_caps
+
+    th = np.linspace(np.pi, 0.0, 40)
+    up = np.column_stack([np.zeros(29), np.linspace(-0.04, 0.1, 29)])  # the far leg is the longer
+    arc = np.column_stack([0.03 + 0.03 * np.cos(th), 0.1 + 0.03 * np.sin(th)])
+    down = np.column_stack([np.full(21, 0.06), np.linspace(0.1, 0.0, 21)])
+    line = np.vstack([up, arc[1:], down[1:]])
+    line3 = np.column_stack([line, np.zeros(len(line))])
+    surf = _plate(x=(-0.05, 0.11), y=(-0.06, 0.16), z=0.0)
+    d = np.linalg.norm(surf[:, None, :2] - line[None], axis=2).min(axis=1)
+    paint = surf[d <= 0.01]  # a 2 cm band with round caps at (0, -0.04) and (0.06, 0)
+    skeleton = np.vstack([line3, [[0.06, -0.008, 0.0]]])  # into the cap at the end
+    out = end_caps(skeleton, paint, cKDTree(surf), 0.01, 0.005, start=False)
+    np.testing.assert_allclose(out[:-1], skeleton[:len(out) - 1])
+    assert len(out) >= len(line3) - 1, "the far leg is kept"
+    assert np.linalg.norm(out[-1] - [0.06, 0.0, 0.0]) < 0.0015
 
 
 def test_a_line_over_a_raised_rim_keeps_going_forward():

@@ -212,10 +212,9 @@ def _end_cap(p: np.ndarray, paint: np.ndarray, tree: cKDTree, metal: cKDTree, ha
         return p
     on_metal = len(metal.query_ball_point(e + (tip + half) * t, 0.5 * half)) > 0
     goal = tip - half if on_metal else tip  # the cap's centre, or the edge the metal and the paint stop at
-    if goal < 0.0:  # the skeleton reached into the cap: trimmed back to its centre
-        keep = (p - e) @ t < goal
-        keep[0] = True
-        return np.vstack([p[keep], e + goal * t])
+    if goal < 0.0:  # the skeleton reached into the cap: its last stretch beyond the centre trimmed off
+        short = np.flatnonzero((p - e) @ t < goal)  # (a line that curves back further on stays whole)
+        return np.vstack([p[: (short[-1] if len(short) else 0) + 1], e + goal * t])
     steps = np.arange(spacing, goal - 0.25 * spacing, spacing)  # it stopped short: extended along its direction
     return np.vstack([p, e + np.append(steps, goal)[:, None] * t]) if goal > 0.25 * spacing else p
 

@@ -274,6 +274,16 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
             out.layer_reason.append(COLLISION)
         else:
             out.layer_reason.append(JOINT_LIMITS)
+    # a run that gets less than one spacing along the line (a pivot in place at an inside corner)
+    # is a pierce, not a cut: its layers join the gap beside it, with that gap's reason
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))])
+    short = [s[last] - s[first] < 0.999 * cfg.spacing_m for first, last in runs]
+    for (first, last), drop in zip(runs, short):
+        if drop:
+            beside = [r for r in out.layer_reason[max(first - 1, 0):last + 2] if r] or [SINGULAR]
+            out.layer_reason[first:last + 1] = [beside[0]] * (last - first + 1)
+    runs = [r for r, drop in zip(runs, short) if not drop]
+    chosen = [c for c, drop in zip(chosen, short) if not drop]
     for (first, last), rungs in zip(runs, chosen):
         lay = np.arange(first, last + 1)
         o = rungs // S
