@@ -266,6 +266,28 @@ def test_plan_cut_reports_what_will_be_cut_and_round_trips(kin, tmp_path):
     np.testing.assert_allclose(back.branches[0].tilt_rad, path.branches[0].tilt_rad, atol=1e-9)
 
 
+def test_a_cut_the_ladder_hands_over_is_clear_where_the_arm_will_be(kin):
+    """plan_cut does not check a run's cut again: the ladder checked that very motion (the timed
+    spline, a sample per degree of joint travel). Checked here from outside, at every control
+    sample, against a wall the torch must tilt away from."""
+    from planners.cutpath.plan import _cut_trajectory
+
+    pts, normals, poses, times = straight([0.35, -0.15], [0.55, 0.15])
+
+    def is_free(Q):  # a wall beside the line, leaning over it: the upright torch's flange hits it
+        T = kin.fk_batch(Q)
+        flange = T[:, :3, 3] - 0.15 * T[:, :3, 2]
+        return flange[:, 0] < 0.47 + 0.3 * (flange[:, 2] - 0.1)
+
+    path = CutPath([__import__("planners.cutpath.model", fromlist=["Branch"]).Branch(
+        pts, normals, poses, np.full(len(pts), CFG.travel_speed_mps), "a", "b")], np.zeros((0, 3)), np.zeros((0, 3)),
+        CFG.model_dump(mode="json"))
+    plan_cut(path, kin, PANDA_Q_READY, CFG, is_free=is_free)
+    assert path.branches and all(b.feasible for b in path.branches)
+    for b in path.branches:
+        assert is_free(_cut_trajectory(b, CFG.dt_s).positions).all()
+
+
 # ----------------------------------------------------------------------------- accuracy
 def test_cut_accuracy_against_a_known_line():
     line = np.column_stack([np.linspace(0, 0.2, 50), np.zeros(50), np.zeros(50)])

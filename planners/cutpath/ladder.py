@@ -42,6 +42,10 @@ PIVOT_SPEED = 0.3
 #: colliding motions tried between two layers before the cut is split there (a reconfiguration: the
 #: torch lifts and lands again, nothing is left uncut); bounds the lazy search near a tight corner
 MOTION_TRIES = 8
+#: IK iterations per rung: from a neighbouring layer's or the normal's solution IK converges within a
+#: dozen, from a random seed within 50; on t_piece and the basket 0.1 % more rungs were solved between
+#: 50 and 150 iterations, and those last iterations, for a few dozen creeping targets, cost a third
+IK_ITERATIONS = 60
 _WHY = {OUT_OF_REACH: "the torch pose is beyond the arm's reach at every tilt",
         JOINT_LIMITS: "in reach, but no configuration within the joint limits holds the torch there",
         COLLISION: "every configuration that holds the torch there collides with the scanned piece or the arm",
@@ -158,7 +162,7 @@ def solve_rungs(kin: Kinematics, branch_poses: list[np.ndarray], q_start: np.nda
     # a fixed roll keeps the torch's x along the travel (the nominal pose's x made orthogonal to the axis)
     xs = None if cfg.free_roll else np.broadcast_to(poses[:, None, :3, 0], axes.shape)
     Qn, okn = solve_axis_ik_batch(kin, np.repeat(tips[:, 0], S, 0), np.repeat(axes[:, 0], S, 0),
-                                  np.tile(seeds, (N, 1)), margin=cfg.ik_margin_rad,
+                                  np.tile(seeds, (N, 1)), margin=cfg.ik_margin_rad, max_iter=IK_ITERATIONS,
                                   x_axes=None if xs is None else np.repeat(xs[:, 0], S, 0))
     Qn, okn = Qn.reshape(N, S, dof), okn.reshape(N, S)
     Q = np.full((N, O, S, dof), np.nan)
@@ -335,7 +339,8 @@ def _solve(kin, tips, axes, seed, todo, cfg, xs=None) -> tuple[np.ndarray, np.nd
     if len(idx[0]) == 0:
         return Q, ok
     q, good = solve_axis_ik_batch(kin, tips[idx[0], idx[1]], axes[idx[0], idx[1]], seed[idx],
-                                  margin=cfg.ik_margin_rad, x_axes=None if xs is None else xs[idx[0], idx[1]])
+                                  margin=cfg.ik_margin_rad, max_iter=IK_ITERATIONS,
+                                  x_axes=None if xs is None else xs[idx[0], idx[1]])
     Q[idx], ok[idx] = q, good
     return Q, ok
 

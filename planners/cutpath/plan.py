@@ -13,7 +13,7 @@ from planners.cutpath.config import CutPathConfig
 from planners.cutpath.geometry import (Surface, arc_length, band_half_width, center_on_paint, end_caps, on_surface,
                                       painted_over, pivots, smooth_resample, torch_poses)
 from planners.cutpath.graph import END, JUNCTION, LOOP, drawing_graph, through_junctions
-from planners.cutpath.ladder import (RECONFIGURE, Rungs, cut_spline, every_degree, plan_ladder, reversal_permutation,
+from planners.cutpath.ladder import (IK_ITERATIONS, RECONFIGURE, Rungs, cut_spline, every_degree, plan_ladder, reversal_permutation,
                                      solve_rungs, tilt_directions)
 from planners.cutpath.nozzle import NozzleCheck
 from planners.cutpath.pieces import short_pieces
@@ -126,7 +126,7 @@ def _stand_off_solutions(kin: Kinematics, T: np.ndarray, q_near: np.ndarray, cfg
     k = len(distances)
     tips = T[:3, 3] - np.repeat(np.asarray(distances, dtype=np.float64), len(D))[:, None] * np.tile(axes, (k, 1))
     Q, ok = solve_axis_ik_batch(kin, tips, np.tile(axes, (k, 1)), np.tile(q_near, (k * len(D), 1)),
-                                margin=cfg.ik_margin_rad,
+                                margin=cfg.ik_margin_rad, max_iter=IK_ITERATIONS,
                                 x_axes=None if cfg.free_roll else np.tile(T[:3, 0], (k * len(D), 1)))
     out = []
     for Qd, okd in zip(np.split(Q, k), np.split(ok, k)):
@@ -222,6 +222,7 @@ def _runs_of(b: Branch, index: int, kin: Kinematics, q_here: np.ndarray, cfg: Cu
         rb.tilt_rad = r.tilt_rad
         rb.qd = np.gradient(rb.q, rb.times, axis=0) if len(rb) > 1 else np.zeros_like(rb.q)
         rb.source = index
+        rb.motion_checked = is_free is not None  # the ladder checked this very motion, sample for sample
         runs.append(rb)
     gaps = []
     for g in lad.gaps:
@@ -313,7 +314,7 @@ def _time_run(b: Branch, kin: Kinematics, q_here: np.ndarray, cfg: CutPathConfig
     b.cut = _cut_trajectory(b, cfg.dt_s)
     if np.any(np.abs(b.cut.velocities) > lim["max_vel"] + 1e-9):
         b.issues.append("the timed cut exceeds a joint velocity limit")
-    if not _motion_free(is_free, b.cut.positions):  # between the rungs, pivots included
+    if not getattr(b, "motion_checked", False) and not _motion_free(is_free, b.cut.positions):  # pivots included
         b.issues.append("the cut collides between its poses")
     motion = dict(speed_factor=cfg.approach_speed_factor, dt=cfg.dt_s, lower=kin.lower, upper=kin.upper)
 
