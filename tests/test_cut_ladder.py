@@ -470,3 +470,16 @@ def test_paint_round_a_thin_bar_is_no_loop_and_crosses_each_bar_along_the_line()
         c = b.points
         psi = np.arctan2(c[:, 1], c[:, 2])
         assert np.abs(c[:, 0] - 0.02 * psi).max() < 0.003, "each cut runs along the line, across its rod"
+
+
+def test_a_bubble_of_paint_round_a_rim_is_one_stroke():
+    """Paint sprayed over the 12 mm rim of an I-beam's flange (a twin scan, i_beam seed 0, the
+    drawing cloud within 6 cm of the rim, tests/data): thinning makes two branches between two
+    junctions round the rim, a cycle narrower than its band of paint. The longer goes; the line
+    stays one stroke from end to end instead of three strokes and a 16 mm cut 5 mm off the line."""
+    from planners.cutpath.graph import drawing_graph, through_junctions
+
+    paint = np.load(os.path.join(os.path.dirname(__file__), "data", "i_beam_rim_paint.npz"))["paint"].astype(float)
+    g = drawing_graph(paint, 0.005, 0.03, 1, surface=paint)
+    assert "junction" not in g.kinds and len(g.branches) == 1
+    assert len(through_junctions(g)) == 1

@@ -12,7 +12,7 @@ from scipy.sparse.csgraph import connected_components, depth_first_order, dijkst
 from scipy.spatial import cKDTree
 
 from planners.cutpath import _checks
-from planners.cutpath.geometry import arc_length
+from planners.cutpath.geometry import arc_length, painted_over
 from planners.skeleton import thin
 
 JUNCTION, END, LOOP = "junction", "end", "loop"
@@ -230,6 +230,34 @@ def _prune(g: _Builder, min_branch_m: float) -> None:
         del g.pos[k], g.kind[k]
 
 
+def _pop_painted_over(g: _Builder, xyz: np.ndarray, voxel: float) -> None:
+    """Drop the cycles no worker drew: a loop narrower than the band of paint round it would have
+    its hole painted over (``geometry.painted_over``). Thinning makes them where paint wraps a thin
+    bar or a plate's rim (the paint round the bar is a tube with the metal as its hole): a closed
+    branch or a junction's loop onto itself goes (its paint is then a piece, ``pieces.py``); of two
+    branches between the same two junctions (a bubble round a rim) the longer goes."""
+    for i, (p, a, b) in list(g.branches.items()):  # a handful of branches
+        if a == b and painted_over(p, xyz, voxel):
+            g.drop_branch(i)
+    twins: dict[frozenset, list[int]] = {}
+    for i, (p, a, b) in g.branches.items():
+        if a != b:
+            twins.setdefault(frozenset((a, b)), []).append(i)
+    for ids in twins.values():
+        if len(ids) < 2:
+            continue
+        ids = sorted(ids, key=lambda i: polyline_length(g.branches[i][0]))
+        p, a, _ = g.branches[ids[0]]
+        for i in ids[1:]:
+            q, c, _ = g.branches[i]
+            loop = np.vstack([p, (q if c != a else q[::-1])[1:]])  # a -> b, then back to a
+            if painted_over(loop, xyz, voxel):
+                g.drop_branch(i)
+    g.settle()
+    for k in [k for k, d in g.degree().items() if d == 0]:
+        del g.pos[k], g.kind[k]
+
+
 def _half_width(c: np.ndarray, t: np.ndarray, xyz: np.ndarray, tree: cKDTree, voxel: float) -> float:
     """Half the line's width at centre-line point `c` (direction `t`): the spread of the paint in
     a thin slab across the line there."""
@@ -362,6 +390,7 @@ def drawing_graph(xyz: np.ndarray, voxel_m: float = 0.005, min_branch_m: float =
     A = _without_shortcuts(G)
     b = _trace(A, pos)
     _prune(b, min_branch)
+    _pop_painted_over(b, xyz, voxel)
     if extend_ends:
         _extend_ends(b, xyz, tree, voxel)
     keys = list(b.pos)

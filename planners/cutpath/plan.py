@@ -11,7 +11,7 @@ from planners.clouds import Cloud
 from planners.cutpath import _checks
 from planners.cutpath.config import CutPathConfig
 from planners.cutpath.geometry import (Surface, arc_length, band_half_width, center_on_paint, end_caps, on_surface,
-                                      painted_over, pivots, smooth_resample, torch_poses)
+                                      pivots, smooth_resample, torch_poses)
 from planners.cutpath.graph import END, JUNCTION, LOOP, drawing_graph, through_junctions
 from planners.cutpath.ladder import (IK_ITERATIONS, RECONFIGURE, Rungs, cut_spline, every_degree, plan_ladder, reversal_permutation,
                                      solve_rungs, tilt_directions)
@@ -79,8 +79,6 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | No
     branches, strokes = [], []
     for poly, a, b in through_junctions(g):  # a handful of strokes: a crossing is cut straight through
         closed = a == b and g.kinds[a] == LOOP
-        if a == b and painted_over(poly, d_xyz, cfg.spacing_m):
-            continue  # paint wrapped round a bar: its pieces below cut across it
         strokes.append(poly)
         held: list = []  # the corners: the torch pivots on them, resampling keeps them
         pts = smooth_resample(poly, cfg.spacing_m, cfg.smoothing_voxels * cfg.voxel_m, closed,

@@ -785,9 +785,16 @@ class CollisionChecker:
         Q = self._rows(Q)
         robot = self.robot
         P = robot.part_poses_batch(Q)  # (N, P, 4, 4)
-        Z = P[:, self._floor_part, 2]  # (N, V, 4): the z row of each vertex's part pose
-        z = np.einsum("vj,nvj->nv", self._floor_v, Z[..., :3]) + Z[..., 3]
-        ok = np.minimum.reduceat(z, self._floor_start, axis=1).min(axis=1) >= self.cfg.floor_margin_m
+        # floor: each moving part's bounding sphere first; hull vertices only for rows where one dips
+        Zm = P[:, self._moving, 2]  # (N, M, 4): the z row of each moving part's pose
+        low = np.einsum("nmj,mj->nm", Zm[..., :3], robot._centre[self._moving]) + Zm[..., 3] \
+            - robot._radius[self._moving] < self.cfg.floor_margin_m
+        ok = np.ones(len(Q), dtype=bool)
+        rows = np.flatnonzero(low.any(axis=1))
+        if len(rows):
+            Z = P[rows][:, self._floor_part, 2]  # (n, V, 4): the z row of each vertex's part pose
+            z = np.einsum("vj,nvj->nv", self._floor_v, Z[..., :3]) + Z[..., 3]
+            ok[rows] = np.minimum.reduceat(z, self._floor_start, axis=1).min(axis=1) >= self.cfg.floor_margin_m
         if self._scene is not None or self._static:
             Pm = P[:, self._moving]
             R = Pm[..., :3, :3]
@@ -808,10 +815,20 @@ class CollisionChecker:
             rows = np.flatnonzero(ok)
             i, j = robot.self_pairs[:, 0], robot.self_pairs[:, 1]
             bp, bc, br, ba, bb, first = self._self_balls
-            Pb = P[rows][:, bp]  # (n, balls, 4, 4): each ball's part pose
-            c = np.einsum("nbij,bj->nbi", Pb[..., :3, :3], bc) + Pb[..., :3, 3]
-            meet = np.linalg.norm(c[:, ba] - c[:, bb], axis=2) <= br[ba] + br[bb]  # (n, ball pairs)
-            near = np.logical_or.reduceat(meet, first, axis=1)  # (n, self pairs): some balls of the two meet
+            # the two parts' bounding spheres first; their balls only for the pairs whose spheres meet
+            Pr = P[rows]
+            pc = np.einsum("npij,pj->npi", Pr[..., :3, :3], robot._centre) + Pr[..., :3, 3]
+            near = np.linalg.norm(pc[:, i] - pc[:, j], axis=2) <= robot._radius[i] + robot._radius[j]  # (n, pairs)
+            some = np.flatnonzero(near.any(axis=0))
+            if len(some):
+                last = np.append(first[1:], len(ba))
+                cols = np.concatenate([np.arange(first[k], last[k]) for k in some])  # a few dozen pairs
+                Pb = Pr[:, bp]  # (n, balls, 4, 4): each ball's part pose
+                c = np.einsum("nbij,bj->nbi", Pb[..., :3, :3], bc) + Pb[..., :3, 3]
+                a_, b_ = ba[cols], bb[cols]
+                meet = np.linalg.norm(c[:, a_] - c[:, b_], axis=2) <= br[a_] + br[b_]  # (n, their ball pairs)
+                starts = np.cumsum([0] + [int(last[k] - first[k]) for k in some[:-1]])
+                near[:, some] &= np.logical_or.reduceat(meet, starts, axis=1)  # some balls of the two meet
             for r, k in zip(*np.nonzero(near)):  # narrow phase: the few pairs whose balls meet
                 if not ok[rows[r]]:
                     continue
