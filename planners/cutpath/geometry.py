@@ -233,8 +233,8 @@ def _corner_point(p: np.ndarray, i: int, scale_m: float, paint: np.ndarray | Non
     s = arc_length(p)
     before = (s < s[i] - scale_m) & (s > max(s[i] - 3.0 * scale_m, within[0]))
     after = (s > s[i] + scale_m) & (s < min(s[i] + 3.0 * scale_m, within[1]))
-    if before.sum() < 3 or after.sum() < 3:
-        return p[i]
+    if before.sum() < 3 or after.sum() < 3 or min(np.ptp(s[before]), np.ptp(s[after])) < scale_m:
+        return p[i]  # a side shorter than the scale (the next corner is near) gives no direction to trust
     lines = []
     for m in (before, after):
         c = p[m].mean(axis=0)

@@ -83,10 +83,10 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | No
         held: list = []  # the corners: the torch pivots on them, resampling keeps them
         pts = smooth_resample(poly, cfg.spacing_m, cfg.smoothing_voxels * cfg.voxel_m, closed,
                               corner_scale_m=cfg.corner_scale_m, corner_deg=cfg.corner_deg, paint=d_xyz, held=held)
-        pts = center_on_paint(pts, d_xyz, cfg.spacing_m, closed, normals=surf.normals(pts))
         if not closed and END in (g.kinds[a], g.kinds[b]):
             pts = end_caps(pts, d_xyz, surf.tree, band_half_width(pts, d_xyz, cfg.spacing_m), cfg.spacing_m,
                            start=g.kinds[a] == END, end=g.kinds[b] == END)
+        pts = center_on_paint(pts, d_xyz, cfg.spacing_m, closed, normals=surf.normals(pts))  # extensions too
         pts, normals = pivots(*on_surface(pts, surf, cfg.spacing_m, np.array(held)), cfg.pivot_step_deg)
         poses = torch_poses(pts, normals, cfg.standoff_m, closed)
         branches.append(Branch(pts, normals, poses, np.full(len(pts), cfg.travel_speed_mps), label[a], label[b], closed))
