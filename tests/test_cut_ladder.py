@@ -288,6 +288,29 @@ def test_a_cut_the_ladder_hands_over_is_clear_where_the_arm_will_be(kin):
         assert is_free(_cut_trajectory(b, CFG.dt_s).positions).all()
 
 
+def test_a_run_the_torch_cannot_plunge_into_starts_further_in(kin):
+    """Nothing may come within 12 mm of the line's first point from above the torch's working
+    height (something overhangs it there), though the torch may stand there: the run starts at the
+    first pose it can plunge to, the poses before are a collision gap, and the rest of the run is
+    cut, not dropped with its approach."""
+    from planners.cutpath.model import Branch
+
+    pts, normals, poses, times = straight([0.45, -0.10], [0.45, 0.10])
+
+    def is_free(Q):
+        tip = kin.fk_batch(Q)[:, :3, 3]
+        return ~((np.hypot(tip[:, 0] - 0.45, tip[:, 1] + 0.10) < 0.012) & (tip[:, 2] > 0.113))
+
+    path = CutPath([Branch(pts, normals, poses, np.full(len(pts), CFG.travel_speed_mps), "a", "b")],
+                   np.zeros((0, 3)), np.zeros((0, 3)), CFG.model_dump(mode="json"))
+    plan_cut(path, kin, PANDA_Q_READY, CFG, is_free=is_free)
+    assert len(path.branches) == 1 and path.branches[0].feasible, [b.issues for b in path.branches]
+    assert path.branches[0].points[:, 1].min() > -0.10 + 0.001  # whichever way it is cut
+    gap = [g for g in path.gaps if g.reason == COLLISION]
+    assert len(gap) == 1 and gap[0].length_m <= 0.021 and ("plunge" in gap[0].detail or "lift" in gap[0].detail)
+    assert path.cut_fraction > 0.89
+
+
 # ----------------------------------------------------------------------------- accuracy
 def test_cut_accuracy_against_a_known_line():
     line = np.column_stack([np.linspace(0, 0.2, 50), np.zeros(50), np.zeros(50)])

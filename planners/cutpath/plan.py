@@ -13,8 +13,8 @@ from planners.cutpath.config import CutPathConfig
 from planners.cutpath.geometry import (Surface, arc_length, band_half_width, center_on_paint, end_caps, on_surface,
                                       pivots, smooth_resample, torch_poses)
 from planners.cutpath.graph import END, JUNCTION, LOOP, drawing_graph, through_junctions
-from planners.cutpath.ladder import (IK_ITERATIONS, RECONFIGURE, Rungs, cut_spline, every_degree, plan_ladder, reversal_permutation,
-                                     solve_rungs, tilt_directions)
+from planners.cutpath.ladder import (COLLISION, IK_ITERATIONS, RECONFIGURE, Rungs, cut_spline, every_degree,
+                                     plan_ladder, reversal_permutation, solve_rungs, tilt_directions)
 from planners.cutpath.nozzle import NozzleCheck
 from planners.cutpath.pieces import short_pieces
 from planners.cutpath.model import OK, Branch, CutPath, Gap
@@ -83,10 +83,11 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | No
         held: list = []  # the corners: the torch pivots on them, resampling keeps them
         pts = smooth_resample(poly, cfg.spacing_m, cfg.smoothing_voxels * cfg.voxel_m, closed,
                               corner_scale_m=cfg.corner_scale_m, corner_deg=cfg.corner_deg, paint=d_xyz, held=held)
-        if not closed and END in (g.kinds[a], g.kinds[b]):
+        pts = center_on_paint(pts, d_xyz, cfg.spacing_m, closed, normals=surf.normals(pts))
+        if not closed and END in (g.kinds[a], g.kinds[b]):  # along the centred line; what it adds centred too
             pts = end_caps(pts, d_xyz, surf.tree, band_half_width(pts, d_xyz, cfg.spacing_m), cfg.spacing_m,
                            start=g.kinds[a] == END, end=g.kinds[b] == END)
-        pts = center_on_paint(pts, d_xyz, cfg.spacing_m, closed, normals=surf.normals(pts))  # extensions too
+            pts = center_on_paint(pts, d_xyz, cfg.spacing_m, closed, normals=surf.normals(pts))
         pts, normals = pivots(*on_surface(pts, surf, cfg.spacing_m, np.array(held)), cfg.pivot_step_deg)
         poses = torch_poses(pts, normals, cfg.standoff_m, closed)
         branches.append(Branch(pts, normals, poses, np.full(len(pts), cfg.travel_speed_mps), label[a], label[b], closed))
@@ -298,11 +299,57 @@ def plan_cut(path: CutPath, kin: Kinematics, q_start: np.ndarray, cfg: CutPathCo
         path.gaps += gaps
         for rb in runs:
             _time_run(rb, kin, q_here, cfg, is_free, lim, park_q)
+            rb, lost = _clear_ends(rb, kin, q_here, cfg, is_free, lim, park_q)
+            path.gaps += lost
             runs_out.append(rb)
             if rb.feasible:
                 q_here = rb.retract_q
     path.branches = runs_out
     return path
+
+
+def _sub_run(b: Branch, first: int, stop: int) -> Branch:
+    """Poses first..stop-1 of a run as a run of its own (its motion to be checked again: the cut's
+    spline comes to rest at the new ends)."""
+    sl = slice(first, stop)
+    rb = Branch(b.points[sl].copy(), b.normals[sl].copy(), b.poses[sl].copy(), b.speeds[sl].copy(),
+                b.start if first == 0 else f"{b.start}+{float(arc_length(b.points[:first + 1])[-1]):.3f}m",
+                b.end if stop == len(b) else f"{b.start}+{float(arc_length(b.points[:stop])[-1]):.3f}m",
+                feasibility=[OK] * (stop - first), q=b.q[sl].copy(), times=b.times[sl] - b.times[first])
+    rb.tilt_rad = None if b.tilt_rad is None else b.tilt_rad[sl].copy()
+    rb.qd = np.gradient(rb.q, rb.times, axis=0) if len(rb) > 1 else np.zeros_like(rb.q)
+    rb.source = b.source
+    return rb
+
+
+def _clear_ends(b: Branch, kin: Kinematics, q_here: np.ndarray, cfg: CutPathConfig, is_free: IsFree | None,
+                lim: dict, park_q: np.ndarray | None) -> tuple[Branch, list[Gap]]:
+    """A run whose torch cannot plunge in at its first pose (or lift off at its last: an edge, a
+    wall beside the line) starts (ends) a few poses further in: 1, 2, 4, ... poses are given up,
+    as a gap with its reason, not the whole run."""
+    blocked_in = any(m.startswith("approach") for m in b.issues)
+    blocked_out = any(m.startswith("retract") for m in b.issues)
+    if b.feasible or not (blocked_in or blocked_out) or len(b.issues) > blocked_in + blocked_out:
+        return b, []
+    n = len(b)
+    for k in (1, 2, 4, 8, 16):
+        first, stop = (k if blocked_in else 0), (n - k if blocked_out else n)
+        if stop - first < 2 or arc_length(b.points[first:stop])[-1] < cfg.spacing_m:
+            break
+        sub = _sub_run(b, first, stop)
+        _time_run(sub, kin, q_here, cfg, is_free, lim, park_q)
+        if sub.feasible:
+            gaps = []
+            for a, z, what in ((0, first, "plunge into"), (stop - 1, n - 1, "lift off")):
+                if z > a:
+                    pts = b.points[a:z + 1].copy()
+                    nrm = b.normals[a:z + 1].mean(axis=0)
+                    gaps.append(Gap(b.source if b.source is not None else -1, pts[0], pts[-1],
+                                    float(arc_length(pts)[-1]), COLLISION,
+                                    f"no configuration can {what} the cut here without touching the piece",
+                                    pts, nrm / max(np.linalg.norm(nrm), 1e-12)))
+            return sub, gaps
+    return b, []
 
 
 def _time_run(b: Branch, kin: Kinematics, q_here: np.ndarray, cfg: CutPathConfig, is_free: IsFree | None,
