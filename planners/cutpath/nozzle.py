@@ -32,9 +32,12 @@ class NozzleCheck:
     """Is the nozzle clear of the scanned surface by ``margin_m`` with its tip at ``tips`` and its
     axis (tip pointing along it, into the metal) along ``axes``?"""
 
-    def __init__(self, surface_xyz: np.ndarray, torch: TorchConfig, margin_m: float) -> None:
-        self.tree = cKDTree(np.asarray(surface_xyz, dtype=np.float64).reshape(-1, 3), balanced_tree=False,
-                            compact_nodes=False)  # built per cut: half the time
+    def __init__(self, surface_xyz: np.ndarray | cKDTree, torch: TorchConfig, margin_m: float) -> None:
+        if isinstance(surface_xyz, cKDTree):  # the surface's own index (geometry.Surface.tree)
+            self.tree = surface_xyz
+        else:
+            self.tree = cKDTree(np.asarray(surface_xyz, dtype=np.float64).reshape(-1, 3), balanced_tree=False,
+                                compact_nodes=False)  # built per cut: half the time
         self.offsets, self.radii = nozzle_balls(torch)
         self.margin = float(margin_m)
 

@@ -48,14 +48,15 @@ def _xyz_origin(cloud, name: str) -> tuple[np.ndarray, np.ndarray | None]:
     return _checks.points(cloud, name), None
 
 
-def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | None = None,
+def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Surface | None = None,
                    cfg: CutPathConfig | None = None, *, viewpoint: np.ndarray | None = None) -> CutPath:
     """Branches, smoothed and evenly spaced on the surface, with torch poses; no joint data yet.
 
     Args:
         drawing: the drawing cloud D_total (Cloud or (N,3)).
-        surface: the surface cloud C_total for normals and snapping; the drawing itself when None
-            (paint lies on the surface, so it is a surface too, if a narrow one).
+        surface: the surface cloud C_total for normals and snapping, or a ``Surface`` already
+            indexed; the drawing itself when None (paint lies on the surface, so it is a surface
+            too, if a narrow one).
         cfg: parameters; defaults when None.
         viewpoint: (3,) a point on the outward side, for surface points whose sensor position
             is unknown (an array has none; Cloud.origin may be NaN).
@@ -65,7 +66,9 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | No
     """
     cfg = cfg or CutPathConfig()
     d_xyz, d_origin = _xyz_origin(drawing, "drawing")
-    if surface is None:
+    if isinstance(surface, Surface):  # already indexed (plan_cut_path shares it with the nozzle check)
+        surf = surface
+    elif surface is None:
         surf = Surface(d_xyz, d_origin, viewpoint, cfg.normal_radius_m, "drawing")
     else:
         surf = Surface(*_xyz_origin(surface, "surface"), viewpoint, cfg.normal_radius_m)
@@ -430,6 +433,9 @@ def plan_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Non
     """build_cut_path then plan_cut, the nozzle kept ``nozzle_margin_m`` off the surface cloud
     (the drawing's own points when there is no surface)."""
     cfg = cfg or CutPathConfig()
-    metal = _xyz_origin(drawing if surface is None else surface, "surface")[0]
-    return plan_cut(build_cut_path(drawing, surface, cfg, viewpoint=viewpoint), kin, q_start, cfg,
-                    is_free=is_free, nozzle_free=NozzleCheck(metal, cfg.torch, cfg.nozzle_margin_m), **limits)
+    if surface is None:
+        surf = Surface(*_xyz_origin(drawing, "drawing"), viewpoint, cfg.normal_radius_m, "drawing")
+    else:
+        surf = Surface(*_xyz_origin(surface, "surface"), viewpoint, cfg.normal_radius_m)
+    return plan_cut(build_cut_path(drawing, surf, cfg, viewpoint=viewpoint), kin, q_start, cfg,
+                    is_free=is_free, nozzle_free=NozzleCheck(surf.tree, cfg.torch, cfg.nozzle_margin_m), **limits)
