@@ -105,8 +105,9 @@ a coded error, on loopback."""
 def test_a_closed_scan_recording_leaves_no_thread_behind(tmp_path):
     """Found by the load test with full scan jobs: every job's Rerun recording left 4 native threads
     (and ~2 MB) behind, 820 threads after 200 jobs. The initial_view jobs above record nothing, so
-    this checks the recorder itself: threads of a process before and after five recordings. In a
-    process of its own: threads that other tests leave winding down in this one would count too."""
+    this checks the recorder itself: threads of a process before and after five recordings (given up
+    to 5 s to wind down: a leak is for good). In a process of its own: threads that other tests leave
+    winding down in this one would count too."""
     script = """
 import os, sys
 from pathlib import Path
@@ -120,6 +121,10 @@ for i in range(5):
     rec = ScanRecorder(out / f"{i}.rrd", f"scan {i}")
     rec.log_scene(np.eye(3), np.array([[0, 1, 2]]), np.zeros((4, 3)))
     rec.close()
+import time
+deadline = time.monotonic() + 5.0  # a leaked thread stays; one of the last recording's may still be winding down
+while threads() > before and time.monotonic() < deadline:
+    time.sleep(0.05)
 print(before, threads())
 """
     proc = subprocess.run([sys.executable, "-c", script, str(tmp_path)], cwd=ROOT, capture_output=True, text=True,
