@@ -14,7 +14,8 @@ from planners.clouds import Cloud
 from planners.config import CutPathConfig
 from planners.cutpath import CutPath, plan_cut_path, torch_kinematics
 from planners.grid import OccupancyGrid
-from planners.motion.collision import CollisionChecker, CollisionConfig, RobotCollisionModel, TorchShape
+from planners.motion.collision import (CollisionChecker, CollisionConfig, RobotCollisionModel, TorchShape,
+                                      grid_scene_voxels)
 from planners.motion.kinematics import Kinematics
 from sim.config import TwinToolConfig
 
@@ -47,20 +48,24 @@ def twin_torch(cut: CutPathConfig) -> TwinToolConfig:
 
 def torch_shape(cut: CutPathConfig, *, nozzle: bool = True) -> TorchShape:
     """The torch as a cylinder on the flange for the collision model: its whole length (the scan's
-    moves keep it clear like any link), or without the nozzle (the cut's check, see torch_checker)."""
+    moves keep it clear like any link), or without its working end (the cut's check, see torch_checker)."""
     t = cut.torch
-    return TorchShape(t.radius_m, t.length_m - (0.0 if nozzle else t.nozzle_length_m), t.T_flange_mount())
+    return TorchShape(t.radius_m, t.length_m - (0.0 if nozzle else t.fine_length_m), t.T_flange_mount())
 
 
-def torch_checker(arm_model, ccfg: CollisionConfig, cut: CutPathConfig, grid: OccupancyGrid) -> CollisionChecker:
-    """Arm + camera + torch head against the scan, with the cut's own (small) margin. The nozzle
-    (``torch.nozzle_length_m`` from the tip) is left to the cut planner's finer check against the
-    surface cloud (planners.cutpath.nozzle): it works ``standoff_m`` off the metal, closer than a cell."""
+def torch_checker(arm_model, ccfg: CollisionConfig, cut: CutPathConfig,
+                  grid: OccupancyGrid) -> tuple[CollisionChecker, np.ndarray]:
+    """Arm + camera + torch against the scan, with the cut's own (small) margin, and the centres of
+    the unseen cells it counts as solid. The torch's working end (``torch.fine_length_m`` from the
+    tip) is left to the cut planner's finer check against the surface cloud and those cells
+    (planners.cutpath.nozzle): it works ``standoff_m`` off the metal, closer than a cell."""
     cfg = ccfg.model_copy(update={"margin_m": cut.cut_margin_m})
     checker = CollisionChecker(RobotCollisionModel.from_arm_model(arm_model, cfg, torch=torch_shape(cut, nozzle=False)),
                                cfg)
-    checker.set_scene_from_grid(grid)
-    return checker
+    near = cfg.unknown_near_m if cfg.unknown_as_occupied else 0.0
+    occupied, unseen = grid_scene_voxels(grid, near, cfg.object_box_m if cfg.unknown_as_occupied else 0.0)
+    checker.set_scene(occupied, grid.voxel, unseen)
+    return checker, (unseen if cfg.unknown_as_occupied else np.zeros((0, 3)))
 
 
 def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: OccupancyGrid, drawing: Cloud,
@@ -73,10 +78,9 @@ def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: Occupanc
                            lower=m.lower, upper=m.upper)
     summary = CutSummary()
     try:
-        checker = torch_checker(m, ccfg, cut, grid)
-
+        checker, unseen = torch_checker(m, ccfg, cut, grid)
         path = plan_cut_path(drawing, surface, kin, arm.joint_positions(), cut, viewpoint=viewpoint,
-                             is_free=checker.free, max_vel=m.max_velocity, max_acc=m.max_acceleration,
+                             is_free=checker.free, unseen=unseen, cell_m=grid.voxel, max_vel=m.max_velocity, max_acc=m.max_acceleration,
                              max_jerk=m.max_jerk, park_q=park_q)
     except ValueError as e:
         summary.error = str(e)

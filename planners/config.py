@@ -136,6 +136,9 @@ class TorchConfig(_Strict):
     # an oxy-fuel cutting nozzle tapers from the head to a tip about 12 mm across
     nozzle_radius_m: float = Field(0.006, gt=0, le=0.2, description="the nozzle at its tip")
     nozzle_length_m: float = Field(0.03, ge=0, le=0.5, description="the taper from the head to the tip")
+    # within a few centimetres of the metal the occupancy grid's 1 cm cells (plus the margin) close an
+    # inside corner the torch fits into: this much of it is checked against the scanned points instead
+    fine_length_m: float = Field(0.06, ge=0, le=0.5, description="tip to here: checked against the surface cloud")
 
     @model_validator(mode="after")
     def _check(self) -> "TorchConfig":
@@ -144,6 +147,9 @@ class TorchConfig(_Strict):
         if self.nozzle_length_m >= self.length_m:
             raise ValueError(f"torch nozzle_length_m ({self.nozzle_length_m}) must be shorter than the torch "
                              f"({self.length_m})")
+        if not self.nozzle_length_m <= self.fine_length_m < self.length_m:
+            raise ValueError(f"torch fine_length_m ({self.fine_length_m}) must cover the nozzle "
+                             f"({self.nozzle_length_m}) and be shorter than the torch ({self.length_m})")
         if any(abs(v) > 360.0 for v in self.rpy_deg):
             raise ValueError(f"torch rpy_deg {self.rpy_deg} outside [-360, 360]")
         if float(np.linalg.norm(self.xyz_m)) > 1.0:

@@ -12,7 +12,7 @@ import pytest
 from planners.config import CutPathConfig
 from planners.cutpath import CutPath, build_cut_path, plan_cut, torch_kinematics
 from planners.cutpath.ladder import COLLISION, OUT_OF_REACH, RECONFIGURE, plan_ladder, tilt_directions
-from planners.cutpath.geometry import center_on_paint, pivots, torch_poses
+from planners.cutpath.geometry import arc_length, center_on_paint, pivots, torch_poses
 from planners.cutpath.nozzle import NozzleCheck, nozzle_balls
 from planners.metrics import cut_accuracy
 from planners.motion.ik_batch import solve_axis_ik_batch
@@ -129,12 +129,12 @@ def test_the_torch_tilts_within_its_cone_to_clear_an_obstacle(kin):
     assert np.all(is_free(lad.runs[0].q))
 
 
-def test_the_nozzle_balls_contain_the_taper():
+def test_the_nozzle_balls_contain_the_taper_and_the_head_up_to_the_fine_length():
     torch = CFG.torch
     u, r = nozzle_balls(torch)
     rng = np.random.default_rng(2)
-    z = rng.uniform(0.0, torch.nozzle_length_m, 4000)  # back from the tip
-    rho = torch.nozzle_radius_m + (torch.radius_m - torch.nozzle_radius_m) * z / torch.nozzle_length_m
+    z = rng.uniform(0.0, torch.fine_length_m, 4000)  # back from the tip
+    rho = torch.nozzle_radius_m + (torch.radius_m - torch.nozzle_radius_m) * np.minimum(z / torch.nozzle_length_m, 1)
     a = rng.uniform(0, 2 * np.pi, len(z))
     pts = np.column_stack([rho * np.cos(a), rho * np.sin(a), z])  # on the taper's surface
     d = np.linalg.norm(pts[:, None, :] - np.column_stack([np.zeros((len(u), 2)), u])[None], axis=2)
@@ -154,6 +154,88 @@ def test_a_nozzle_leaning_into_a_wall_is_not_clear():
     axes = np.array([[0.0, 0.0, -1.0], [-np.sin(lean), 0.0, -np.cos(lean)], [np.sin(lean), 0.0, -np.cos(lean)]])
     tips = -CFG.standoff_m * axes  # the tip standoff_m back along the axis from the paint point (0, 0, 0)
     assert check(tips, axes).tolist() == [True, False, True]
+
+
+def _corner(step=0.002):
+    """A 90 deg inside corner: the floor z = 0 for x < 0 and a wall x = 0 6 cm high."""
+    x, y = np.meshgrid(np.arange(-0.1, 0.0, step), np.arange(-0.05, 0.05, step))
+    floor = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    y, z = np.meshgrid(np.arange(-0.05, 0.05, step), np.arange(0.0, 0.06, step))
+    return np.vstack([floor, np.column_stack([np.zeros(y.size), y.ravel(), z.ravel()])])
+
+
+def test_the_torch_works_into_an_inside_corner_closer_than_a_grid_cell():
+    """A line across the floor into a wall: 12 mm from the wall the torch, leaning 20 deg away
+    from it, is clear of the measured surface (the 1 cm grid with its margin would close that
+    corner); upright there its head hits the wall, and so does a torch 3 mm from the wall."""
+    check = NozzleCheck(_corner(), CFG.torch, CFG.nozzle_margin_m)
+    lean = np.radians(20.0)
+    away = np.array([np.sin(lean), 0.0, -np.cos(lean)])  # tip into the metal, body leaning to -x
+    down = np.array([0.0, 0.0, -1.0])
+    paint = np.array([[-0.012, 0.0, 0.0], [-0.012, 0.0, 0.0], [-0.003, 0.0, 0.0]])
+    axes = np.array([away, down, away])
+    assert check(paint - CFG.standoff_m * axes, axes).tolist() == [True, False, False]
+
+
+def test_unseen_cells_block_the_head_not_the_nozzle():
+    """An unseen cell in front of the metal, beside the torch: 2 cm up, beside the nozzle, it does
+    not count (the cells next to a surface seen at a slant are often unseen); 5 cm up, beside the
+    head, it does, as large as its bounding ball."""
+    floor = _plate(x=(-0.05, 0.05), y=(-0.05, 0.05), z=0.0)
+    axis = np.array([0.0, 0.0, -1.0])
+    tip = np.array([[0.0, 0.0, CFG.standoff_m]])
+    clear = [NozzleCheck(floor, CFG.torch, CFG.nozzle_margin_m, np.array([[0.025, 0.0, z]]), 0.01)(tip, axis[None])[0]
+             for z in (0.02, 0.06)]
+    assert clear == [True, False]
+    assert NozzleCheck(floor, CFG.torch, CFG.nozzle_margin_m, np.array([[0.045, 0.0, 0.06]]), 0.01)(tip, axis[None])[0]
+
+
+def test_a_skeleton_bowing_at_its_end_is_rebuilt_from_its_paint():
+    """Thinning bends a skeleton's last few centimetres toward a side of the end cap (6 mm on
+    t_piece's branch). The end is rebuilt from the paint of its last two band widths: it ends
+    within 1.5 mm of the drawn end and no point of it is more than 1.5 mm off the line; a line
+    that turns within that stretch (a quarter circle of 5 cm radius) is followed round its turn,
+    within 2 mm."""
+    from scipy.spatial import cKDTree
+
+    from planners.cutpath.geometry import end_caps
+
+    surf = _plate(x=(-0.05, 0.25), y=(-0.1, 0.1), z=0.0, step=0.0015)
+    n = np.tile([0.0, 0.0, 1.0], (200, 1))
+    straight = np.column_stack([np.linspace(0.0, 0.2, 41), np.zeros(41), np.zeros(41)])
+    th = np.linspace(0.0, np.pi / 2, 40)
+    turning = np.vstack([np.column_stack([np.linspace(0.0, 0.15, 31)[:-1], np.zeros(30)]),
+                         np.column_stack([0.15 + 0.05 * np.sin(th), 0.05 - 0.05 * np.cos(th)])])
+    turning = np.column_stack([turning, np.zeros(len(turning))])
+    for line in (straight, turning):
+        d = np.linalg.norm(surf[:, None, :2] - line[None, :, :2], axis=2).min(axis=1)
+        paint = surf[d <= 0.01]
+        s = arc_length(line)
+        bow = np.clip((s - (s[-1] - 0.03)) / 0.02, 0.0, 1.0) * 0.006  # up to 6 mm sideways
+        side = np.cross(np.gradient(line, axis=0), [0.0, 0.0, 1.0])
+        side /= np.linalg.norm(side, axis=1, keepdims=True)
+        skeleton = line + bow[:, None] * side
+        skeleton = skeleton[s <= s[-1] - 0.004]  # and stopping short of the paint's end
+        out = end_caps(skeleton, paint, cKDTree(surf), 0.01, 0.005, start=False, normals=n[:len(skeleton)])
+        truth = cKDTree(np.vstack([a + np.linspace(0, 1, 50)[:, None] * (b - a) for a, b in zip(line[:-1], line[1:])]))
+        tol = 0.0015 if line is straight else 0.002  # a 2 cm band turning on a 5 cm radius: its paint lies outward
+        assert np.linalg.norm(out[-1] - line[-1]) < tol
+        assert truth.query(out)[0].max() < tol
+
+
+def test_paint_on_the_far_face_of_a_plate_is_not_beside_the_line():
+    """A line along the top face of a 12 mm plate whose 2 cm band of paint also wraps onto the
+    plate's far face: with the surface normals the band is 1 cm wide on each side, not the
+    reach of the paint on the other face."""
+    from planners.cutpath.geometry import band_half_width
+
+    top = _plate(x=(0.0, 0.2), y=(-0.01, 0.006), z=0.0, step=0.001)  # the face the line runs on
+    far = _plate(x=(0.0, 0.2), y=(-0.004, 0.006), z=-0.012, step=0.001)  # paint round the rim on the far face
+    paint = np.vstack([top, far])
+    line = np.column_stack([np.linspace(0.01, 0.19, 37), np.zeros(37), np.zeros(37)])
+    up = np.tile([0.0, 0.0, 1.0], (len(line), 1))
+    assert band_half_width(line, paint, 0.005, normals=up) == pytest.approx(0.01, abs=0.0015)
+    assert band_half_width(line, paint, 0.005) > 0.012
 
 
 def test_a_line_off_the_middle_of_its_paint_is_moved_to_it():
@@ -414,9 +496,11 @@ def test_an_end_cap_trims_only_the_line_s_last_stretch():
     paint = surf[d <= 0.01]  # a 2 cm band with round caps at (0, -0.04) and (0.06, 0)
     skeleton = np.vstack([line3, [[0.06, -0.008, 0.0]]])  # into the cap at the end
     out = end_caps(skeleton, paint, cKDTree(surf), 0.01, 0.005, start=False)
-    np.testing.assert_allclose(out[:-1], skeleton[:len(out) - 1])
-    assert len(out) >= len(line3) - 1, "the far leg is kept"
+    kept = arc_length(skeleton) < arc_length(skeleton)[-1] - 0.04  # before the last two band widths
+    np.testing.assert_allclose(out[:kept.sum()], skeleton[kept])
+    assert len(out) >= len(line3) - 2, "the far leg is kept"
     assert np.linalg.norm(out[-1] - [0.06, 0.0, 0.0]) < 0.0015
+    assert np.linalg.norm(out[:, None, :2] - line[None], axis=2).min(axis=1).max() < 0.001, "on the drawn line"
 
 
 def test_a_line_over_a_raised_rim_keeps_going_forward():

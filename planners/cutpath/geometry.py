@@ -16,6 +16,8 @@ SNAP_NEIGHBOURS = 8
 NORMAL_NEIGHBOURS = 64
 _MIN_NORMAL_NEIGHBOURS = 6
 _END_WEIGHT = 10.0
+END_FIT_DEGREE = 3  # the polynomial through a stroke's end's paint: follows a line that bends or twists there
+FACE_DEG = 20.0  # paint further out of a line's tangent plane is on another face (_same_face)
 #: two sides of a corner that turn by less than this, or by more than 180 minus this, do not meet at
 #: a well-defined point (the intersection of near-parallel lines moves by 1/sin of their angle)
 MEET_DEG = 30.0  # keeps the spline's ends on the junction/end nodes that branches share
@@ -96,15 +98,18 @@ def smooth_resample(poly: np.ndarray, spacing_m: float, smoothing_m: float, clos
 
 
 def _beside(p: np.ndarray, t: np.ndarray, paint: np.ndarray, spacing_m: float,
-            reach_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+            reach_m: float, normals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """The paint beside each point: for the paint within ``reach_m`` in a slab one spacing thick
     across the line, (point index, offset across the line, its length), and the band's half width:
-    the median over the points of how far the paint reaches (0 when none is beside the line)."""
+    the median over the points of how far the paint reaches (0 when none is beside the line). With
+    the surface ``normals`` (K,3), paint on another face (``_same_face``) is not beside the line."""
     pairs = cKDTree(p).sparse_distance_matrix(cKDTree(paint), reach_m, output_type="coo_matrix")
     i, j = pairs.row, pairs.col
     v = paint[j] - p[i]
     along = np.einsum("kj,kj->k", v, t[i])
     slab = np.abs(along) <= 0.5 * spacing_m
+    if normals is not None:
+        slab &= _same_face(v, np.asarray(normals, dtype=np.float64)[i], spacing_m)
     i, v, along = i[slab], v[slab], along[slab]
     across = v - along[:, None] * t[i]
     r = np.linalg.norm(across, axis=1)
@@ -113,14 +118,24 @@ def _beside(p: np.ndarray, t: np.ndarray, paint: np.ndarray, spacing_m: float,
     return i, across, r, float(np.median(reach[reach > 0])) if (reach > 0).any() else 0.0
 
 
+def _same_face(v: np.ndarray, n: np.ndarray, spacing_m: float) -> np.ndarray:
+    """(M,) bool: offsets ``v`` from a point of the line with surface normal ``n`` lie on its face:
+    within FACE_DEG of its tangent plane (half a spacing of noise allowed). A pipe curves far less
+    within a band's width; the far face of a plate the line wraps over lies at 45 deg or more."""
+    off = np.einsum("kj,kj->k", v, n)
+    flat = np.linalg.norm(v - off[:, None] * n, axis=1)
+    return np.abs(off) <= np.tan(np.radians(FACE_DEG)) * flat + 0.5 * spacing_m
+
+
 def band_half_width(points: np.ndarray, paint: np.ndarray, spacing_m: float, closed: bool = False,
-                    reach_m: float = 0.03) -> float:
-    """Half the width of the sprayed band along a line (m): how far the paint reaches across it."""
+                    reach_m: float = 0.03, normals: np.ndarray | None = None) -> float:
+    """Half the width of the sprayed band along a line (m): how far the paint reaches across it
+    (on the line's own face when the surface ``normals`` (K,3) are given)."""
     p = _checks.points(points, "points", 1)
     paint = np.asarray(paint, dtype=np.float64).reshape(-1, 3)
     if len(p) < 2 or len(paint) == 0:
         return 0.0
-    return _beside(p, tangents(p, closed), paint, spacing_m, reach_m)[3]
+    return _beside(p, tangents(p, closed), paint, spacing_m, reach_m, normals)[3]
 
 
 def painted_over(loop: np.ndarray, paint: np.ndarray, spacing_m: float) -> bool:
@@ -149,7 +164,7 @@ def center_on_paint(points: np.ndarray, paint: np.ndarray, spacing_m: float, clo
     if len(p) < 3 or len(paint) < 10:
         return p
     t = tangents(p, closed)
-    i, across, r, half = _beside(p, t, paint, spacing_m, reach_m)
+    i, across, r, half = _beside(p, t, paint, spacing_m, reach_m, normals)
     if len(r) == 0:
         return p
     half *= 1.2  # the band's half width, with a little room
@@ -176,30 +191,42 @@ def center_on_paint(points: np.ndarray, paint: np.ndarray, spacing_m: float, clo
 
 
 def end_caps(points: np.ndarray, paint: np.ndarray, metal: cKDTree, half_m: float, spacing_m: float,
-             start: bool = True, end: bool = True) -> np.ndarray:
+             start: bool = True, end: bool = True, normals: np.ndarray | None = None) -> np.ndarray:
     """A free end of a stroke placed at the centre of the paint's end cap. A sprayed stroke ends
     in a round cap half a band width beyond the line the worker drew: the medial axis of the band
-    ends at the cap's centre, the voxel skeleton reaches into the cap or stops short of it. The
-    end moves along the line (trimmed or extended) to half the width (``half_m``) back from where
-    the paint stops. Where the metal stops with the paint (the line runs off an edge: no surface in
-    ``metal`` half a width beyond the paint) the end goes to the edge: the cut must leave the metal."""
+    ends at the cap's centre, the voxel skeleton reaches into the cap or stops short of it, and
+    within a band width of its end it leans towards a side of the cap (thinning eats the cap from
+    its rim). So the line's last band width is rebuilt: from the point a width (2 ``half_m``) back,
+    straight on along the line's direction there, to half a width back from where the paint stops.
+    Where the metal stops with the paint (the line runs off an edge: no surface in ``metal`` half a
+    width beyond the paint) the end goes to the edge: the cut must leave the metal. The surface
+    ``normals`` (K,3) at the points keep paint on another face out of the fit."""
     p = _checks.points(points, "points", 1)
     paint = np.asarray(paint, dtype=np.float64).reshape(-1, 3)
     if len(p) < 3 or len(paint) == 0 or not half_m > 0:
         return p
+    n = None if normals is None else np.asarray(normals, dtype=np.float64)
     tree = cKDTree(paint)
     if start:
-        p = _end_cap(p[::-1], paint, tree, metal, half_m, spacing_m)[::-1]
+        p = _end_cap(p[::-1], paint, tree, metal, half_m, spacing_m, None if n is None else n[::-1])[::-1]
+        if n is not None:  # the far end's points are as they were: their normals, counted from that end
+            n = n[max(len(n) - len(p), 0):]
+            n = np.vstack([np.repeat(n[:1], len(p) - len(n), axis=0), n])
     if end:
-        p = _end_cap(p, paint, tree, metal, half_m, spacing_m)
+        p = _end_cap(p, paint, tree, metal, half_m, spacing_m, n)
     return p
 
 
 def _end_cap(p: np.ndarray, paint: np.ndarray, tree: cKDTree, metal: cKDTree, half: float,
-             spacing: float) -> np.ndarray:
+             spacing: float, normals: np.ndarray | None) -> np.ndarray:
     s = arc_length(p)
-    e = p[-1]
-    back = p[min(int(np.searchsorted(s, s[-1] - 2.0 * half)), len(p) - 2)]  # the direction over a band width
+    width = 2.0 * half
+    if s[-1] >= 3.0 * width:
+        fitted = _end_from_paint(p, s, paint, tree, metal, half, spacing, normals)
+        if fitted is not None:
+            return fitted
+    e = p[-1]  # short, or its paint is no single band there: from the skeleton's own end
+    back = p[min(int(np.searchsorted(s, s[-1] - width)), len(p) - 2)]  # the direction over a band width
     t = e - back
     t /= max(np.linalg.norm(t), 1e-12)
     v = paint[tree.query_ball_point(e, 3.0 * half)] - e
@@ -217,6 +244,56 @@ def _end_cap(p: np.ndarray, paint: np.ndarray, tree: cKDTree, metal: cKDTree, ha
         return np.vstack([p[: (short[-1] if len(short) else 0) + 1], e + goal * t])
     steps = np.arange(spacing, goal - 0.25 * spacing, spacing)  # it stopped short: extended along its direction
     return np.vstack([p, e + np.append(steps, goal)[:, None] * t]) if goal > 0.25 * spacing else p
+
+
+def _end_from_paint(p: np.ndarray, s: np.ndarray, paint: np.ndarray, tree: cKDTree, metal: cKDTree, half: float,
+                    spacing: float, normals: np.ndarray | None) -> np.ndarray | None:
+    """The stroke's last two band widths rebuilt from their paint: the band's centre line is the
+    polynomial curve nearest to its paint (a band is symmetric about it; a cubic follows a line
+    that bends or twists there; each point's parameter its foot on the curve, a first guess along
+    the stretch's chord), from where the stretch starts to the cap's centre (or the metal's edge).
+    None where the paint is no single band there (another stroke's paint joins it, a corner): the
+    skeleton's own end then stands.
+    With the surface ``normals`` only the paint on the line's own face (``_same_face``) counts."""
+    j = int(np.searchsorted(s, s[-1] - 4.0 * half))
+    pairs = cKDTree(p[j:]).sparse_distance_matrix(tree, 1.5 * half, output_type="coo_matrix")
+    keep = np.ones(len(pairs.col), dtype=bool)
+    if normals is not None:
+        keep = _same_face(paint[pairs.col] - p[j + pairs.row], normals[j + pairs.row], 0.5 * half)
+    v = paint[np.unique(pairs.col[keep])]
+    if len(v) < 20:
+        return None
+    t = p[-1] - p[j]
+    t /= max(np.linalg.norm(t), 1e-12)
+    u = (v - p[j]) @ t
+    powers = np.arange(END_FIT_DEGREE, 0, -1)[:, None]
+
+    def x(uu: np.ndarray) -> np.ndarray:
+        return np.vander(uu, END_FIT_DEGREE + 1) @ coef
+
+    for _ in range(3):  # fit, then each paint point's parameter moved to its foot on the curve, refit
+        coef = np.polyfit(u, v, END_FIT_DEGREE)  # (degree + 1, 3), highest power first
+        slope = coef[:-1] * powers  # dx/du, highest power first
+        dx = np.vander(u, END_FIT_DEGREE) @ slope
+        u = u + np.einsum("ij,ij->i", v - x(u), dx) / np.maximum(np.einsum("ij,ij->i", dx, dx), 1e-12)
+
+    res = np.linalg.norm(v - x(u), axis=1)
+    if np.percentile(res, 90) > 1.2 * half:  # wider than one band: not a single stroke's end
+        return None
+    band = v[res <= half]
+    goal = float(u[res <= half].max())  # where the paint stops, along the chord: a first guess
+    on_metal = True
+    for _ in range(3):  # then along the line's own direction there (the chord leans where the line turns)
+        d = (np.vander(np.array([goal]), END_FIT_DEGREE) @ slope)[0]
+        speed = max(float(np.linalg.norm(d)), 1e-12)
+        d = d / speed
+        xe = x(np.array([goal]))[0]
+        ahead = float(((band - xe) @ d).max())  # the paint beyond the point, along the line
+        on_metal = len(metal.query_ball_point(xe + (ahead + half) * d, 0.5 * half)) > 0
+        goal += (ahead - (half if on_metal else 0.0)) / speed  # the cap's centre, or the metal's edge
+    if goal <= spacing:
+        return None
+    return np.vstack([p[:j], x(np.append(np.arange(0.0, goal - 0.25 * spacing, spacing), goal))])
 
 
 def _corner_point(p: np.ndarray, i: int, scale_m: float, paint: np.ndarray | None = None,

@@ -1,7 +1,10 @@
-"""The nozzle against the scanned surface. The arm's and the torch head's collision model works on
-the occupancy grid (1 cm cells), too coarse for the last centimetres of the torch, which work
-``standoff_m`` off the metal; the nozzle is checked against the surface cloud itself, as a chain of
-balls along its taper whose union contains it (a k-d tree query per ball, all poses at once)."""
+"""The torch's working end against the scanned surface. The arm's and the rest of the torch's
+collision model works on the occupancy grid (1 cm cells, a margin round each), too coarse for the
+last centimetres of the torch, which work ``standoff_m`` off the metal: in an inside corner the cells
+close the room the nozzle and head fit into. The first ``fine_length_m`` of the torch (nozzle taper,
+then head) is checked against the surface cloud itself, as a chain of balls whose union contains it
+(a k-d tree query per ball, all poses at once), and against the unseen cells in front of the
+surface, where a piece the scan missed could stand."""
 
 from __future__ import annotations
 
@@ -16,29 +19,40 @@ BALL_STEP_M = 0.005
 
 def nozzle_balls(torch: TorchConfig) -> tuple[np.ndarray, np.ndarray]:
     """(offsets (K,), radii (K,)): ball centres on the torch axis, offsets back from the tip, and
-    radii such that the balls contain the taper from ``nozzle_radius_m`` at the tip to
-    ``radius_m`` at ``nozzle_length_m`` (each ball: its slice's half length and widest radius)."""
-    L = torch.nozzle_length_m
-    if L <= 0:
+    radii such that the balls contain the torch's first ``fine_length_m``: the taper from
+    ``nozzle_radius_m`` at the tip to ``radius_m`` at ``nozzle_length_m``, then the head (each
+    ball: its slice's half length and widest radius)."""
+    L, F = torch.nozzle_length_m, torch.fine_length_m
+    if F <= 0:
         return np.zeros(0), np.zeros(0)
-    K = max(1, int(np.ceil(L / BALL_STEP_M - 1e-9)))
-    s = L / K
+    K = max(1, int(np.ceil(F / BALL_STEP_M - 1e-9)))
+    s = F / K
     u = (np.arange(K) + 0.5) * s
-    widest = torch.nozzle_radius_m + (torch.radius_m - torch.nozzle_radius_m) * (u + s / 2) / L
+    taper = (u + s / 2) / L if L > 0 else np.ones(K)
+    widest = torch.nozzle_radius_m + (torch.radius_m - torch.nozzle_radius_m) * np.minimum(taper, 1.0)
     return u, np.hypot(s / 2, widest)
 
 
 class NozzleCheck:
-    """Is the nozzle clear of the scanned surface by ``margin_m`` with its tip at ``tips`` and its
-    axis (tip pointing along it, into the metal) along ``axes``?"""
+    """Is the torch's working end clear of the scanned surface by ``margin_m`` with its tip at
+    ``tips`` and its axis (tip pointing along it, into the metal) along ``axes``? ``unseen``: centres
+    of cells of side ``cell_m`` nobody has seen into, each an obstacle as large as its bounding ball
+    for the head (the nozzle works within a cell of the metal, where the cells next to a surface seen
+    at a slant are often unseen); pass only those in front of the surface: the ones behind it are
+    the metal's inside, which the surface already bounds."""
 
-    def __init__(self, surface_xyz: np.ndarray | cKDTree, torch: TorchConfig, margin_m: float) -> None:
+    def __init__(self, surface_xyz: np.ndarray | cKDTree, torch: TorchConfig, margin_m: float,
+                 unseen: np.ndarray | None = None, cell_m: float = 0.0) -> None:
         if isinstance(surface_xyz, cKDTree):  # the surface's own index (geometry.Surface.tree)
             self.tree = surface_xyz
         else:
             self.tree = cKDTree(np.asarray(surface_xyz, dtype=np.float64).reshape(-1, 3), balanced_tree=False,
                                 compact_nodes=False)  # built per cut: half the time
+        unseen = np.zeros((0, 3)) if unseen is None else np.asarray(unseen, dtype=np.float64).reshape(-1, 3)
+        self.unseen = cKDTree(unseen) if len(unseen) else None
+        self.cell_reach = float(cell_m) * np.sqrt(3.0) / 2.0
         self.offsets, self.radii = nozzle_balls(torch)
+        self.nozzle_length = torch.nozzle_length_m
         self.margin = float(margin_m)
 
     def __call__(self, tips: np.ndarray, axes: np.ndarray) -> np.ndarray:
@@ -47,6 +61,13 @@ class NozzleCheck:
         if len(self.offsets) == 0 or self.tree.n == 0:
             return np.ones(tips.shape[:-1], dtype=bool)
         centres = tips[..., None, :] - self.offsets[:, None] * axes[..., None, :]  # (..., K, 3)
+        flat = centres.reshape(-1, 3)
         reach = self.radii + self.margin
-        d, _ = self.tree.query(centres.reshape(-1, 3), distance_upper_bound=float(reach.max()))
-        return (d.reshape(centres.shape[:-1]) > reach).all(axis=-1)
+        d, _ = self.tree.query(flat, distance_upper_bound=float(reach.max()))
+        clear = (d.reshape(centres.shape[:-1]) > reach).all(axis=-1)
+        head = self.offsets >= self.nozzle_length  # the nozzle works closer to the metal than a cell
+        if self.unseen is not None and head.any():
+            reach = self.radii[head] + self.margin + self.cell_reach
+            d, _ = self.unseen.query(centres[..., head, :].reshape(-1, 3), distance_upper_bound=float(reach.max()))
+            clear &= (d.reshape(centres.shape[:-2] + (int(head.sum()),)) > reach).all(axis=-1)
+        return clear

@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from planners.clouds import Cloud
 from planners.cutpath import _checks
@@ -88,8 +89,9 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
                               corner_scale_m=cfg.corner_scale_m, corner_deg=cfg.corner_deg, paint=d_xyz, held=held)
         pts = center_on_paint(pts, d_xyz, cfg.spacing_m, closed, normals=surf.normals(pts))
         if not closed and END in (g.kinds[a], g.kinds[b]):  # along the centred line; what it adds centred too
-            pts = end_caps(pts, d_xyz, surf.tree, band_half_width(pts, d_xyz, cfg.spacing_m), cfg.spacing_m,
-                           start=g.kinds[a] == END, end=g.kinds[b] == END)
+            n = surf.normals(pts)
+            pts = end_caps(pts, d_xyz, surf.tree, band_half_width(pts, d_xyz, cfg.spacing_m, normals=n), cfg.spacing_m,
+                           start=g.kinds[a] == END, end=g.kinds[b] == END, normals=n)
             pts = center_on_paint(pts, d_xyz, cfg.spacing_m, closed, normals=surf.normals(pts))
         pts, normals = pivots(*on_surface(pts, surf, cfg.spacing_m, np.array(held)), cfg.pivot_step_deg)
         poses = torch_poses(pts, normals, cfg.standoff_m, closed)
@@ -429,13 +431,37 @@ def _time_run(b: Branch, kin: Kinematics, q_here: np.ndarray, cfg: CutPathConfig
 
 def plan_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | None, kin: Kinematics,
                   q_start: np.ndarray, cfg: CutPathConfig | None = None, *, viewpoint: np.ndarray | None = None,
-                  is_free: IsFree | None = None, **limits) -> CutPath:
-    """build_cut_path then plan_cut, the nozzle kept ``nozzle_margin_m`` off the surface cloud
-    (the drawing's own points when there is no surface)."""
+                  is_free: IsFree | None = None, unseen: np.ndarray | None = None, cell_m: float = 0.0,
+                  **limits) -> CutPath:
+    """build_cut_path then plan_cut, the torch's working end (``torch.fine_length_m``) kept
+    ``nozzle_margin_m`` off the surface cloud (the drawing's own points when there is no surface)
+    and off the ``unseen`` cells (centres, side ``cell_m``) in front of it (``is_free`` checks the rest)."""
     cfg = cfg or CutPathConfig()
     if surface is None:
         surf = Surface(*_xyz_origin(drawing, "drawing"), viewpoint, cfg.normal_radius_m, "drawing")
     else:
         surf = Surface(*_xyz_origin(surface, "surface"), viewpoint, cfg.normal_radius_m)
-    return plan_cut(build_cut_path(drawing, surf, cfg, viewpoint=viewpoint), kin, q_start, cfg,
-                    is_free=is_free, nozzle_free=NozzleCheck(surf.tree, cfg.torch, cfg.nozzle_margin_m), **limits)
+    path = build_cut_path(drawing, surf, cfg, viewpoint=viewpoint)
+    near = _in_front(unseen, surf, path, cfg, cell_m)
+    return plan_cut(path, kin, q_start, cfg, is_free=is_free,
+                    nozzle_free=NozzleCheck(surf.tree, cfg.torch, cfg.nozzle_margin_m, near, cell_m), **limits)
+
+
+def _in_front(unseen: np.ndarray | None, surf: Surface, path: CutPath, cfg: CutPathConfig, cell_m: float) -> np.ndarray:
+    """The unseen cells the torch's working end must keep off. Those it could reach while it cuts,
+    plunges or lifts off (within ``approach_m`` of a cut pose) count where they lie in front of the
+    measured surface: the ones behind it are the metal's inside, which the surface bounds. Farther
+    out (the air moves) every one counts, as it does for the rest of the torch."""
+    if unseen is None or len(unseen) == 0:
+        return np.zeros((0, 3))
+    c = np.asarray(unseen, dtype=np.float64).reshape(-1, 3)
+    if not path.branches:
+        return c
+    tips = np.vstack([b.poses[:, :3, 3] for b in path.branches])
+    reach = cfg.approach_m + cfg.torch.fine_length_m + cfg.torch.radius_m + cfg.nozzle_margin_m + cell_m
+    near = np.isfinite(cKDTree(tips).query(c, distance_upper_bound=reach)[0])
+    if not near.any():
+        return c
+    p = surf.xyz[surf.tree.query(c[near])[1]]
+    front = np.einsum("ij,ij->i", c[near] - p, surf.normals(p)) > 0.0
+    return np.vstack([c[~near], c[near][front]])
