@@ -400,12 +400,12 @@ class Surface:
                              "normals cannot be oriented")
         self.tree = cKDTree(self.xyz, balanced_tree=False, compact_nodes=False)  # built per cut: half the time
 
-    def normals(self, at: np.ndarray) -> np.ndarray:
+    def normals(self, at: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) -> np.ndarray:
         """Outward unit normals (M,3) at points near the surface: the least-variance direction of
-        the nearest surface points within the radius (all NORMAL_NEIGHBOURS nearest where fewer
+        the nearest surface points within the radius (all ``neighbours`` nearest where fewer
         than a handful lie inside), on the side of the sensors that saw them."""
         at = np.asarray(at, dtype=np.float64)
-        k = min(NORMAL_NEIGHBOURS, len(self.xyz))
+        k = min(neighbours, len(self.xyz))
         d, idx = self.tree.query(at, k=k)
         d, idx = d.reshape(len(at), k), idx.reshape(len(at), k)
         w = (d <= self.radius).astype(np.float64)

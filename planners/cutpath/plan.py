@@ -33,6 +33,9 @@ from planners.motion.roadmap import roadmap_route
 from planners.motion.trajectory import JointPath, plan_through
 
 IsFree = Callable[[np.ndarray], np.ndarray]
+#: surface points in the normal that tells an unseen cell in front of the metal from one behind it:
+#: a sign, not a direction to aim the torch by, and thousands of cells
+IN_FRONT_NEIGHBOURS = 12
 
 
 def torch_kinematics(urdf_path: str, cfg: CutPathConfig | None = None, *,
@@ -463,5 +466,5 @@ def _in_front(unseen: np.ndarray | None, surf: Surface, path: CutPath, cfg: CutP
     if not near.any():
         return c
     p = surf.xyz[surf.tree.query(c[near])[1]]
-    front = np.einsum("ij,ij->i", c[near] - p, surf.normals(p)) > 0.0
+    front = np.einsum("ij,ij->i", c[near] - p, surf.normals(p, IN_FRONT_NEIGHBOURS)) > 0.0
     return np.vstack([c[~near], c[near][front]])

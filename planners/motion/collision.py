@@ -30,6 +30,7 @@ Not thread-safe (one Pinocchio data buffer, fcl objects moved in place): give ea
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import numbers
@@ -191,7 +192,17 @@ def _box_points(size: Sequence[float]) -> np.ndarray:
 
 
 def _urdf_collision_points(urdf_path: str) -> list[tuple[str, np.ndarray]]:
-    """(link, points in the link frame) per <collision> element; hulls are taken later."""
+    """(link, points in the link frame) per <collision> element; hulls are taken later. Read once
+    per file version (a cut plan builds its own checker; the meshes are the same every time)."""
+    try:
+        st = os.stat(urdf_path)
+    except OSError as e:
+        raise ValueError(f"urdf_path {urdf_path!r} cannot be read as URDF: {e}") from None
+    return _urdf_points_of(os.path.abspath(urdf_path), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=8)
+def _urdf_points_of(urdf_path: str, mtime_ns: int, size: int) -> list[tuple[str, np.ndarray]]:
     try:
         root = ET.parse(urdf_path).getroot()
     except (OSError, ET.ParseError) as e:
@@ -226,7 +237,7 @@ def _urdf_collision_points(urdf_path: str) -> list[tuple[str, np.ndarray]]:
                 raise ValueError(f"URDF link {name!r}: unsupported collision geometry <{shape.tag}>")
             if len(pts) < 4:
                 raise ValueError(f"URDF link {name!r}: collision geometry has fewer than 4 vertices")
-            out.append((name, pts @ T[:3, :3].T + T[:3, 3]))
+            out.append((name, _frozen(pts @ T[:3, :3].T + T[:3, 3])))
     return out
 
 
@@ -253,6 +264,32 @@ def _inscribed_radius(poly: trimesh.Trimesh) -> float:
     return float(np.min(np.abs(np.einsum("ij,ij->i", poly.face_normals, v))))
 
 
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a = np.ascontiguousarray(a)
+    a.flags.writeable = False  # shared by every checker built from the same geometry
+    return a
+
+
+def _memo(fn):
+    """``fn(*args)`` computed once per distinct arguments (arrays by their contents): the same
+    robot's hulls, inflations and ball covers are asked for by every checker, and each cut plan
+    builds its own. Results are read-only."""
+    cache: dict = {}
+
+    @functools.wraps(fn)
+    def call(*args):
+        key = tuple((a.tobytes(), a.shape, a.dtype.str) if isinstance(a, np.ndarray) else a for a in args)
+        out = cache.get(key)
+        if out is None:
+            out = tuple(_frozen(o) for o in fn(*args))
+            if len(cache) >= 512:
+                cache.pop(next(iter(cache)))
+            cache[key] = out
+        return out
+    return call
+
+
+@_memo
 def _hull(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     h = trimesh.convex.convex_hull(points)
     return np.asarray(h.vertices, dtype=np.float64), np.asarray(h.faces, dtype=np.int64)
@@ -262,6 +299,7 @@ _BALL = trimesh.creation.icosphere(subdivisions=1)
 _BALL_POINTS = _BALL.vertices / _inscribed_radius(_BALL)  # contains the unit ball, <= 7 % larger
 
 
+@_memo
 def _inflate(vertices: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
     """Hull of the Minkowski sum with a polytope that contains the margin ball (conservative)."""
     if margin == 0:
@@ -269,6 +307,7 @@ def _inflate(vertices: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarra
     return _hull((vertices[:, None, :] + margin * _BALL_POINTS[None]).reshape(-1, 3))
 
 
+@_memo
 def _ball_cover(vertices: np.ndarray, faces: np.ndarray, slab_m: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
     """(centres (B, 3), radii (B,)) of balls whose union contains the convex hull: the hull cut into
     slabs ``slab_m`` thick along its longest principal axis, each slab's piece in one ball. A piece
