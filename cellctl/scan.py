@@ -27,6 +27,7 @@ from planners.clouds import Cloud
 from planners.config import PlannersConfig
 from planners.grid import OccupancyGrid
 from planners.metrics import coverage, displacement
+from planners.motion import chain_kernel
 from planners.motion.collision import CollisionChecker, RobotCollisionModel
 from planners.motion.ik import Unreachable
 from planners.motion.kinematics import Kinematics
@@ -149,6 +150,7 @@ class ScanJob:
         self.recorder = recorder
         self.progress = progress
         raycast.warmup()  # compile before the clock starts, like any service would at boot
+        chain_kernel.warmup()
         self.grid = OccupancyGrid(pcfg.grid)
         self.surface = Cloud.empty()
         self.drawing = Cloud.empty()

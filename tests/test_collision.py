@@ -488,3 +488,21 @@ def test_the_balls_of_a_part_contain_it(robot):
         d = np.linalg.norm(pts[:, None, :] - c[None], axis=2)
         assert (d <= r[None] + 1e-9).any(axis=1).all(), part.name
         assert len(c) >= 1 and r.max() <= np.linalg.norm(np.ptp(v, axis=0)) / 2 + 1e-9
+
+
+def test_hulls_are_computed_once_per_geometry_and_shared_read_only():
+    """Each cut plan builds its own checker for the same arm: the hulls (and their inflations and
+    ball covers) come from a memo keyed by the points' contents, read-only since every checker
+    shares them; different points get their own hull."""
+    from planners.motion.collision import _hull, _inflate
+
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(50, 3))
+    v, f = _hull(pts)
+    assert _hull(pts.copy())[0] is v, "same contents: the same hull"
+    assert not v.flags.writeable and not f.flags.writeable
+    with pytest.raises(ValueError):
+        v[0, 0] = 1.0
+    other = _hull(pts * 2.0)[0]
+    np.testing.assert_allclose(np.sort(other, axis=0), np.sort(v * 2.0, axis=0))
+    assert _inflate(v, 0.01)[0] is _inflate(v.copy(), 0.01)[0] and _inflate(v, 0.02)[0] is not _inflate(v, 0.01)[0]

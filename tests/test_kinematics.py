@@ -267,3 +267,39 @@ def test_solve_many_returns_first_reachable(kin):
     assert np.linalg.norm(kin.fk(r.q)[:3, 3] - ok1[:3, 3]) < 1e-3
     with pytest.raises(Unreachable, match="none of 2 candidate"):
         solve_camera_ik_many(kin, np.stack([far, up]), PANDA_Q_READY)
+
+
+_SLIDER_URDF = """<robot name="slider">
+  <link name="base"/><link name="carriage"/><link name="arm"/><link name="tool"/>
+  <joint name="slide" type="prismatic"><parent link="base"/><child link="carriage"/>
+    <origin xyz="0.1 0 0.2" rpy="0 0 0.3"/><axis xyz="0.6 0 0.8"/><limit lower="-0.5" upper="0.5" effort="1" velocity="1"/></joint>
+  <joint name="turn" type="revolute"><parent link="carriage"/><child link="arm"/>
+    <origin xyz="0 0.2 0" rpy="0.4 0 0"/><axis xyz="0 1 0"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <joint name="bend" type="revolute"><parent link="arm"/><child link="tool"/>
+    <origin xyz="0.3 0 0" rpy="0 0.2 0"/><axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+</robot>"""
+
+
+@pytest.mark.parametrize("chain", ["panda", "slider"])
+def test_the_compiled_chain_builds_pinocchio_s_jacobian(chain, kin, tmp_path):
+    """The batched IK takes its Jacobian from the compiled chain's joint axes and origins
+    (``chain_kernel``): for the Panda, and for a chain with an unaligned prismatic joint (no origin:
+    its column is the axis), they give Pinocchio's Jacobian and pose."""
+    from planners.motion.ik_batch import _chain
+
+    if chain == "slider":
+        path = tmp_path / "slider.urdf"
+        path.write_text(_SLIDER_URDF)
+        kin = Kinematics(str(path), ["slide", "turn", "bend"], "tool", np.eye(4))
+    rng = np.random.default_rng(3)
+    Q = rng.uniform(kin.lower, kin.upper, size=(20, kin.dof))
+    T, ax, org = _chain(kin, Q, "cam")
+    lever = T[:, None, :3, 3] - org
+    J_lin = np.where(np.isnan(lever), ax, np.cross(ax, np.nan_to_num(lever)))
+    J_ang = np.where(np.isnan(org), 0.0, ax)
+    for q, Tk, Jl, Ja in zip(Q, T, J_lin, J_ang):
+        T_ref, J_ref = kin.pose_and_jacobian(q)
+        np.testing.assert_allclose(Tk, T_ref, atol=1e-12)
+        np.testing.assert_allclose(Jl.T, J_ref[:3], atol=1e-12)
+        np.testing.assert_allclose(Ja.T, J_ref[3:], atol=1e-12)
+    assert np.isnan(org[:, 0]).all() == (chain == "slider")

@@ -8,28 +8,16 @@ from __future__ import annotations
 import numpy as np
 
 from .ik import MAX_STEP, ROT_WEIGHT, _DAMP0, _DAMP_K, _shrunk_limits
-from .kinematics import Kinematics, _joint_motion
+from .kinematics import Kinematics
 
 #: iterations without progress after which a target is given up
 STALL = 20
 
 
 def _chain(kin: Kinematics, Q: np.ndarray, frame: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Tool pose (B,4,4), joint axes (B,dof,3) and joint origins (B,dof,3) in the base frame."""
-    steps, F = kin._chains[frame]
-    n = Q.shape[0]
-    T = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
-    axes = np.zeros((n, kin.dof, 3))
-    origins = np.zeros((n, kin.dof, 3))
-    revolute = np.zeros(kin.dof, dtype=bool)
-    for M, kind, axis, iq in steps:
-        T = T @ M
-        axes[:, iq] = T[:, :3, :3] @ axis
-        origins[:, iq] = T[:, :3, 3]
-        revolute[iq] = kind == "R"
-        T = T @ _joint_motion(kind, axis, Q[:, iq])
-    T = T @ F
-    return T, axes, np.where(revolute[None, :, None], origins, np.nan)
+    """Tool pose (B,4,4), joint axes (B,dof,3) and joint origins (B,dof,3, NaN for prismatic
+    joints) in the base frame (``chain_kernel``)."""
+    return kin._kernels[frame].poses_axes(Q)
 
 
 def solve_axis_ik_batch(kin: Kinematics, positions: np.ndarray, axes: np.ndarray, Q0: np.ndarray, *,

@@ -16,6 +16,8 @@ from collections.abc import Sequence
 import numpy as np
 import pinocchio as pin
 
+from .chain_kernel import Chain
+
 CAM_FRAME_NAME = "scrapcell_camera_optical"
 
 _AXES = {"X": np.array([1.0, 0.0, 0.0]), "Y": np.array([0.0, 1.0, 0.0]), "Z": np.array([0.0, 0.0, 1.0])}
@@ -218,13 +220,14 @@ class Kinematics:
                 elif short in ("JointModelPX", "JointModelPY", "JointModelPZ"):
                     steps.append((M, "P", _AXES[short[-1]], iq))
                 elif short == "JointModelRevoluteUnaligned":
-                    steps.append((M, "R", np.asarray(jm.axis, dtype=np.float64).copy(), iq))
+                    steps.append((M, "R", np.asarray(jm.extract().axis, dtype=np.float64).copy(), iq))
                 elif short == "JointModelPrismaticUnaligned":
-                    steps.append((M, "P", np.asarray(jm.axis, dtype=np.float64).copy(), iq))
+                    steps.append((M, "P", np.asarray(jm.extract().axis, dtype=np.float64).copy(), iq))
                 else:
                     self._chain_ok = False
             chains[name] = (steps, f.placement.homogeneous.copy())
         self._chains = chains
+        self._kernels = {name: Chain(steps, F, self.dof) for name, (steps, F) in chains.items()} if self._chain_ok else {}
         # every joint in tree order (parents first), for the link poses of many configurations at once
         self._tree = []
         for j in range(1, model.njoints):
@@ -235,7 +238,7 @@ class Kinematics:
                 break
             iq = int(np.nonzero(self._idx == jm.idx_q)[0][0])
             axis = _AXES.get(short[-1]) if short[-2:-1] in ("R", "P") and short[-1] in _AXES else (
-                np.asarray(jm.axis, dtype=np.float64).copy() if "Unaligned" in short else None)
+                np.asarray(jm.extract().axis, dtype=np.float64).copy() if "Unaligned" in short else None)
             if axis is None:
                 self._chain_ok = False
                 break
@@ -249,11 +252,7 @@ class Kinematics:
         n = Q.shape[0]
         if not self._chain_ok:  # exotic joint types: fall back to one pinocchio call per row
             return np.stack([self.fk(q, frame) for q in Q]) if n else np.empty((0, 4, 4))
-        steps, F = self._chains[frame]
-        T = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
-        for M, kind, axis, iq in steps:
-            T = T @ M @ _joint_motion(kind, axis, Q[:, iq])
-        return T @ F
+        return self._kernels[frame].poses(Q)
 
     def link_poses_batch(self, Q: np.ndarray, links: Sequence[str]) -> np.ndarray:
         """``link_poses`` for every row of Q (N, dof) -> (N, len(links), 4, 4), vectorized over N: a
