@@ -45,7 +45,11 @@ def solve_axis_ik_batch(kin: Kinematics, positions: np.ndarray, axes: np.ndarray
         X /= np.linalg.norm(X, axis=1, keepdims=True)
         Rt = np.stack([X, np.cross(Z, X), Z], axis=2)
     lo, hi = _shrunk_limits(kin, margin)
-    Q = np.clip(Q, lo, hi)
+    Q = np.ascontiguousarray(np.clip(Q, lo, hi))
+    if Rt is None:  # the roll free: every row in one compiled pass (chain_kernel.axis_ik)
+        ok = kin._kernels[frame].axis_ik(P, Z, Q, lo, hi, tol_pos, tol_ang, max_iter, STALL, ROT_WEIGHT, _DAMP_K,
+                                         _DAMP0, MAX_STEP)
+        return Q, ok
     ok = np.zeros(len(Q), dtype=bool)
     active = np.arange(len(Q))
     best = np.full(len(Q), np.inf)  # lowest error so far, and the iteration it was reached
