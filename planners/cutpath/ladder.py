@@ -225,15 +225,16 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
         chosen = [_cheapest(r, usable, joinable & ~blocked, motion_cost, tilt, cfg) for r in runs]
         # lazy collision check of the chosen rungs; a hit checks its layer and two either side
         hit_layers = set()
-        if is_free is not None:
-            for (first, last), rungs in zip(runs, chosen):
-                lay = np.arange(first, last + 1)
-                need = ~checked[lay, rungs]
-                if need.any():
-                    res = _free(is_free, Qf[lay[need], rungs[need]])
-                    checked[lay[need], rungs[need]] = True
-                    free[lay[need], rungs[need]] = res
-                    hit_layers.update(lay[need][~res].tolist())
+        if is_free is not None and runs:  # every run's unchecked chosen rungs in one call
+            lay = np.concatenate([np.arange(first, last + 1) for first, last in runs])
+            rung = np.concatenate(chosen)
+            need = ~checked[lay, rung]
+            if need.any():
+                lay, rung = lay[need], rung[need]
+                res = _free(is_free, Qf[lay, rung])
+                checked[lay, rung] = True
+                free[lay, rung] = res
+                hit_layers.update(lay[~res].tolist())
         if not hit_layers and is_free is not None:
             # the rungs are free: now the motion between them (joint-space steps of at most 1 degree);
             # once it is clear segment by segment, the runs once more as wholes: the samples of a
@@ -250,13 +251,12 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
                 continue
         if not hit_layers:
             break
-        near = sorted({j for k in hit_layers for j in range(k - 2, k + 3) if 0 <= j < N})
-        for k in near:
-            need = valid[k] & ~checked[k]
-            if need.any():
-                idx = np.flatnonzero(need)
-                free[k, idx] = _free(is_free, Qf[k, idx])
-                checked[k, idx] = True
+        near = np.array(sorted({j for k in hit_layers for j in range(k - 2, k + 3) if 0 <= j < N}))
+        lay, rung = np.nonzero(valid[near] & ~checked[near])  # every rung there, in one call
+        if len(lay):
+            lay = near[lay]
+            free[lay, rung] = _free(is_free, Qf[lay, rung])
+            checked[lay, rung] = True
 
     out = Ladder()
     usable = valid & free
