@@ -14,8 +14,7 @@ from planners.clouds import Cloud
 from planners.config import CutPathConfig
 from planners.cutpath import CutPath, plan_cut_path, torch_kinematics
 from planners.grid import OccupancyGrid
-from planners.motion.collision import (CollisionChecker, CollisionConfig, RobotCollisionModel, TorchShape,
-                                      grid_scene_voxels)
+from planners.motion.collision import CollisionChecker, CollisionConfig, RobotCollisionModel, TorchShape
 from planners.motion.kinematics import Kinematics
 from sim.config import TwinToolConfig
 
@@ -62,10 +61,7 @@ def torch_checker(arm_model, ccfg: CollisionConfig, cut: CutPathConfig,
     cfg = ccfg.model_copy(update={"margin_m": cut.cut_margin_m})
     checker = CollisionChecker(RobotCollisionModel.from_arm_model(arm_model, cfg, torch=torch_shape(cut, nozzle=False)),
                                cfg)
-    near = cfg.unknown_near_m if cfg.unknown_as_occupied else 0.0
-    occupied, unseen = grid_scene_voxels(grid, near, cfg.object_box_m if cfg.unknown_as_occupied else 0.0)
-    checker.set_scene(occupied, grid.voxel, unseen)
-    return checker, (unseen if cfg.unknown_as_occupied else np.zeros((0, 3)))
+    return checker, checker.set_scene_from_grid(grid)
 
 
 def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: OccupancyGrid, drawing: Cloud,
@@ -80,8 +76,8 @@ def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: Occupanc
     try:
         checker, unseen = torch_checker(m, ccfg, cut, grid)
         path = plan_cut_path(drawing, surface, kin, arm.joint_positions(), cut, viewpoint=viewpoint,
-                             is_free=checker.free, unseen=unseen, cell_m=grid.voxel, max_vel=m.max_velocity, max_acc=m.max_acceleration,
-                             max_jerk=m.max_jerk, park_q=park_q)
+                             is_free=checker.free, unseen=unseen, cell_m=grid.voxel, max_vel=m.max_velocity,
+                             max_acc=m.max_acceleration, max_jerk=m.max_jerk, park_q=park_q)
     except ValueError as e:
         summary.error = str(e)
         summary.planning_s = time.perf_counter() - t0

@@ -196,8 +196,9 @@ def end_caps(points: np.ndarray, paint: np.ndarray, metal: cKDTree, half_m: floa
     in a round cap half a band width beyond the line the worker drew: the medial axis of the band
     ends at the cap's centre, the voxel skeleton reaches into the cap or stops short of it, and
     within a band width of its end it leans towards a side of the cap (thinning eats the cap from
-    its rim). So the line's last band width is rebuilt: from the point a width (2 ``half_m``) back,
-    straight on along the line's direction there, to half a width back from where the paint stops.
+    its rim). So the line's last two band widths (4 ``half_m``) are rebuilt from their paint
+    (``_end_from_paint``), to half a width back from where the paint stops; a short line, or one
+    whose paint there is no single band, is trimmed or extended along its own end instead.
     Where the metal stops with the paint (the line runs off an edge: no surface in ``metal`` half a
     width beyond the paint) the end goes to the edge: the cut must leave the metal. The surface
     ``normals`` (K,3) at the points keep paint on another face out of the fit."""
@@ -280,9 +281,9 @@ def _end_from_paint(p: np.ndarray, s: np.ndarray, paint: np.ndarray, tree: cKDTr
     res = np.linalg.norm(v - x(u), axis=1)
     if np.percentile(res, 90) > 1.2 * half:  # wider than one band: not a single stroke's end
         return None
-    band = v[res <= half]
-    goal = float(u[res <= half].max())  # where the paint stops, along the chord: a first guess
-    on_metal = True
+    on_band = res <= half
+    band = v[on_band]
+    goal = float(u[on_band].max())  # where the paint stops, along the chord: a first guess
     for _ in range(3):  # then along the line's own direction there (the chord leans where the line turns)
         d = (np.vander(np.array([goal]), END_FIT_DEGREE) @ slope)[0]
         speed = max(float(np.linalg.norm(d)), 1e-12)

@@ -52,7 +52,7 @@ class NozzleCheck:
         self.unseen = cKDTree(unseen) if len(unseen) else None
         self.cell_reach = float(cell_m) * np.sqrt(3.0) / 2.0
         self.offsets, self.radii = nozzle_balls(torch)
-        self.nozzle_length = torch.nozzle_length_m
+        self.head = self.offsets >= torch.nozzle_length_m  # the nozzle works closer to the metal than a cell
         self.margin = float(margin_m)
 
     def __call__(self, tips: np.ndarray, axes: np.ndarray) -> np.ndarray:
@@ -65,7 +65,7 @@ class NozzleCheck:
         reach = self.radii + self.margin
         d, _ = self.tree.query(flat, distance_upper_bound=float(reach.max()))
         clear = (d.reshape(centres.shape[:-1]) > reach).all(axis=-1)
-        head = self.offsets >= self.nozzle_length  # the nozzle works closer to the metal than a cell
+        head = self.head
         if self.unseen is not None and head.any():
             reach = self.radii[head] + self.margin + self.cell_reach
             d, _ = self.unseen.query(centres[..., head, :].reshape(-1, 3), distance_upper_bound=float(reach.max()))

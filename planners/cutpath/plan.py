@@ -52,6 +52,16 @@ def _xyz_origin(cloud, name: str) -> tuple[np.ndarray, np.ndarray | None]:
     return _checks.points(cloud, name), None
 
 
+def _surface(drawing, surface, viewpoint: np.ndarray | None, cfg: CutPathConfig) -> Surface:
+    """The surface to cut on, indexed: ``surface`` itself when already a ``Surface``, the drawing's
+    own points when None (paint lies on the surface, so it is a surface too, if a narrow one)."""
+    if isinstance(surface, Surface):
+        return surface
+    if surface is None:
+        return Surface(*_xyz_origin(drawing, "drawing"), viewpoint, cfg.normal_radius_m, "drawing")
+    return Surface(*_xyz_origin(surface, "surface"), viewpoint, cfg.normal_radius_m)
+
+
 def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Surface | None = None,
                    cfg: CutPathConfig | None = None, *, viewpoint: np.ndarray | None = None) -> CutPath:
     """Branches, smoothed and evenly spaced on the surface, with torch poses; no joint data yet.
@@ -69,13 +79,8 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
         ValueError: empty or non-finite clouds, bad parameters, normals that cannot be oriented.
     """
     cfg = cfg or CutPathConfig()
-    d_xyz, d_origin = _xyz_origin(drawing, "drawing")
-    if isinstance(surface, Surface):  # already indexed (plan_cut_path shares it with the nozzle check)
-        surf = surface
-    elif surface is None:
-        surf = Surface(d_xyz, d_origin, viewpoint, cfg.normal_radius_m, "drawing")
-    else:
-        surf = Surface(*_xyz_origin(surface, "surface"), viewpoint, cfg.normal_radius_m)
+    d_xyz = _xyz_origin(drawing, "drawing")[0]
+    surf = _surface(drawing, surface, viewpoint, cfg)
     g = drawing_graph(d_xyz, cfg.voxel_m, cfg.min_branch_m, cfg.closing_iterations, surface=surf.xyz)
 
     counters = {JUNCTION: 0, END: 0, LOOP: 0}
@@ -440,10 +445,7 @@ def plan_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Non
     ``nozzle_margin_m`` off the surface cloud (the drawing's own points when there is no surface)
     and off the ``unseen`` cells (centres, side ``cell_m``) in front of it (``is_free`` checks the rest)."""
     cfg = cfg or CutPathConfig()
-    if surface is None:
-        surf = Surface(*_xyz_origin(drawing, "drawing"), viewpoint, cfg.normal_radius_m, "drawing")
-    else:
-        surf = Surface(*_xyz_origin(surface, "surface"), viewpoint, cfg.normal_radius_m)
+    surf = _surface(drawing, surface, viewpoint, cfg)
     path = build_cut_path(drawing, surf, cfg, viewpoint=viewpoint)
     near = _in_front(unseen, surf, path, cfg, cell_m)
     return plan_cut(path, kin, q_start, cfg, is_free=is_free,

@@ -795,11 +795,13 @@ class CollisionChecker:
         self._scene_hi = origin + (ijk.max(axis=0) + 1) * voxel
         self.scene_voxels = n
 
-    def set_scene_from_grid(self, grid) -> None:
-        """Scene from an ``OccupancyGrid``: its occupied cells and the unknown ones near them."""
+    def set_scene_from_grid(self, grid) -> np.ndarray:
+        """Scene from an ``OccupancyGrid``: its occupied cells and the unknown ones near them.
+        Returns the centres (M,3) of the unknown cells it counts as solid."""
         near = self.cfg.unknown_near_m if self.cfg.unknown_as_occupied else 0.0
         occ, unk = grid_scene_voxels(grid, near, self.cfg.object_box_m if self.cfg.unknown_as_occupied else 0.0)
         self.set_scene(occ, grid.voxel, unk)
+        return unk if self.cfg.unknown_as_occupied else np.zeros((0, 3))
 
     def clear_scene(self) -> None:
         self._scene = None
