@@ -13,6 +13,7 @@ from planners import nbv
 from planners.base import ScanState, ViewPlan
 from planners.config import PlannersConfig
 from planners.grid import frontier_clusters
+from planners.growth import GrowthWatch
 from planners.views import look_at_rotations, poses_from
 
 
@@ -35,11 +36,31 @@ class ConstrainedNBV:
         self._turns = [(y, p) for y in offs for p in offs]
         self._given_up: list[np.ndarray] = []  # targets that proved unreachable or without gain
         self._targets: list[np.ndarray] = []  # the target of every plan handed out
+        self._target_steps: list[int] = []  # the step each was planned at
         self._first_gain: float | None = None
+        self._growth = GrowthWatch(self.cfg.min_view_growth_voxels)
 
     def reject(self, plan: ViewPlan) -> None:
         if plan.target is not None:
             self._given_up.append(np.asarray(plan.target))
+
+    def _repeats(self, eyes: np.ndarray, targets: np.ndarray, state: ScanState, near: float) -> np.ndarray:
+        """Mask of candidates that would look at their target from (nearly) the direction of a view
+        already planned for a target there: that view saw what this one would."""
+        past = [(t, state.viewpoints[s + 1]) for t, s in zip(self._targets, self._target_steps)
+                if s + 1 < len(state.viewpoints)]
+        out = np.zeros(len(eyes), dtype=bool)
+        if not past or self.cfg.revisit_angle_deg <= 0:
+            return out
+        T = np.array([t for t, _ in past])
+        V = np.array([v for _, v in past])
+        same = np.linalg.norm(targets[:, None, :] - T[None, :, :], axis=2) < near  # (M, P)
+        u = eyes - targets
+        u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
+        pv = V[None, :, :] - targets[:, None, :]
+        pv /= np.maximum(np.linalg.norm(pv, axis=2, keepdims=True), 1e-9)
+        close = np.einsum("mj,mpj->mp", u, pv) >= np.cos(np.deg2rad(self.cfg.revisit_angle_deg))
+        return np.any(same & close, axis=1)
 
     def _search_space(self, grid, frontier: np.ndarray) -> np.ndarray:
         """S_k = ∪ S(f): lattice positions in the shell [min_standoff, search_radius] of any frontier
@@ -59,6 +80,11 @@ class ConstrainedNBV:
     def next_view(self, state: ScanState) -> ViewPlan:
         cfg, grid = self.cfg, state.grid
         t0 = time.perf_counter()
+        # G-NBV's growth watch: a view that found no drawing gives its target up (C-NBV has no cone
+        # tiers to try it again with)
+        fruitless = self._growth.fruitless(state.step, grid)
+        if fruitless is not None:
+            self._given_up.append(fruitless)
         labels, n = frontier_clusters(grid.frontier(cfg.frontier_reach_voxels), cfg.min_frontier_cluster)
         ijk = np.argwhere(labels > 0)
         frontier = grid.centers(ijk)
@@ -88,7 +114,8 @@ class ConstrainedNBV:
             if nrm is not None:
                 normals[m] = nrm
         ok = nbv.feasible_eyes(grid, eyes, targets, normals[near], cfg, None, cfg.relaxed_view_angle_deg)
-        eyes, targets = eyes[ok], targets[ok]
+        ok &= ~self._repeats(eyes, targets, state, 6 * grid.voxel)
+        eyes, targets, eye_normals = eyes[ok], targets[ok], normals[near][ok]
         timings["candidates_s"] = time.perf_counter() - t0
         if len(eyes) == 0:
             return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "frontier", frontier=frontier, timings=timings)
@@ -97,7 +124,9 @@ class ConstrainedNBV:
         E = np.tile(eyes, (len(self._turns), 1))
         weights = nbv.cell_weights(grid, ijk, cfg)
         cost = np.linalg.norm(E - state.camera_pose[:3, 3], axis=1)
-        gain = nbv.gains(grid, E, R, weights, nbv.visibility_field(grid, cfg), state.K, state.image_size, cfg, cost)
+        facing = np.tile(nbv.incidence(eyes, targets, eye_normals), len(self._turns))
+        gain = nbv.gains(grid, E, R, weights, nbv.visibility_field(grid, cfg), state.K, state.image_size, cfg, cost,
+                         facing)
         q = nbv.quality(gain, cost, cfg.lam)
         rank = np.argsort(-q, kind="stable")
         timings["plan_s"] = time.perf_counter() - t0
@@ -108,5 +137,7 @@ class ConstrainedNBV:
         target = np.tile(targets, (len(self._turns), 1))[rank[0]]
         if not stop:
             self._targets.append(target)
+            self._target_steps.append(state.step)
+            self._growth.planned(state.step, target, grid)
         return ViewPlan(poses_from(E[rank], R[rank]), q[rank], gain[rank], bool(stop), "quality" if stop else "",
                         target=target, frontier=frontier, timings=timings)

@@ -3,13 +3,49 @@ past the tip along the drawing, has been seen and carries no paint needs no view
 a surface that goes on. Without this test G-NBV spends a view per end confirming what the previous
 view already showed (the unknown beyond is a pipe's end cap or the far side of a rim, where a line
 could in principle go on). Gaps (a basket's rods), edges the line goes round and unseen surface all
-leave the tube past the tip empty of surface points, so those ends stay open."""
+leave the tube past the tip empty of surface points, so those ends stay open.
+
+The same holds all round: a cluster whose every drawing point has seen surface on all sides
+(`sealed`) is paint whose border was observed, painted or not, so no line can leave it there
+unseen; the unknown next to it is a pipe's flank curving away behind a stripe whose edge was seen.
+A border of the seen surface (a rim, the far edge of a stripe curving away, a gap between rods)
+leaves its points unsealed, so those clusters stay open."""
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from planners.config import NBVConfig
+
+
+def _local_axes(drawing: np.ndarray, center: np.ndarray, cfg: NBVConfig):
+    """The drawing within `end_radius_m` of the centre, its mean and principal axes, or None when
+    there are too few points."""
+    r = cfg.end_radius_m
+    local = drawing[np.sum((drawing - center) ** 2, axis=1) < r * r]
+    if len(local) < 10:
+        return None
+    mean = local.mean(axis=0)
+    _, _, vt = np.linalg.svd(local - mean, full_matrices=False)
+    return local, mean, vt
+
+
+def sealed(points: np.ndarray, surface: cKDTree, radius: float, surface_voxel: float, k: int = 160) -> np.ndarray:
+    """Per drawing point: is it surrounded by observed surface (painted or not) within `radius`?
+    The disc round a point inside the seen surface is full: its neighbours' centroid is the point
+    itself. At the border of what was seen (a rim, a flank curving away, a gap between rods, the
+    image's edge) half the disc is empty and the centroid moves about 0.42 radius off; there the
+    paint may go on. Sealed: the centroid within 0.2 radius and at least a quarter of the disc's
+    surface voxels present (k nearest neighbours at most, so dense clouds cost no more)."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    d, idx = surface.query(points, k=k, distance_upper_bound=radius)
+    ok = np.isfinite(d)
+    n = ok.sum(axis=1)
+    q = surface.data[np.where(ok, idx, 0)] * ok[..., None]
+    shift = np.linalg.norm(q.sum(axis=1) / np.maximum(n, 1)[:, None] - points, axis=1)
+    return (shift < 0.2 * radius) & (n >= np.pi * (radius / surface_voxel) ** 2 / 4)
 
 
 def ended(drawing: np.ndarray, surface: np.ndarray, center: np.ndarray, cfg: NBVConfig) -> bool:
@@ -17,12 +53,10 @@ def ended(drawing: np.ndarray, surface: np.ndarray, center: np.ndarray, cfg: NBV
     `end_min_points` unpainted surface points and no drawing point lie in a tube `end_check_m` long."""
     if cfg.end_check_m <= 0 or len(drawing) < 10:
         return False
-    r = cfg.end_radius_m
-    local = drawing[np.sum((drawing - center) ** 2, axis=1) < r * r]
-    if len(local) < 10:
+    axes = _local_axes(drawing, center, cfg)
+    if axes is None:
         return False
-    mean = local.mean(axis=0)
-    _, _, vt = np.linalg.svd(local - mean, full_matrices=False)
+    local, mean, vt = axes
     d = vt[0]
     if np.dot(center - mean, d) < 0:
         d = -d

@@ -21,6 +21,7 @@ class GuidedNBV:
     name = "gnbv"
 
     def __init__(self, cfg: PlannersConfig):
+        self._surface_voxel = cfg.grid.surface_voxel_m
         self.cfg = cfg = cfg.nbv
         self._lattice = sphere_lattice(cfg.search_radius_m, cfg.min_standoff_m, cfg.candidate_spacing_m)
         self._targets: list[np.ndarray] = []  # f̂ of every plan handed out
@@ -57,11 +58,33 @@ class GuidedNBV:
         for c in np.flatnonzero(usable):  # a handful of clusters
             if ends.ended(state.drawing.xyz, state.surface.xyz, cents[c], self.cfg):
                 usable[c] = False
+        usable &= ~self._sealed_clusters(state, centers, lab, n)
         if n and self._targets:
             T = np.asarray(self._targets)
             visits = (np.linalg.norm(cents[:, None, :] - T[None, :, :], axis=2) < 2 * near).sum(axis=1)
             usable &= visits < self.cfg.max_target_visits
         return cents, ijk, lab, usable, centers
+
+    def _sealed_clusters(self, state: ScanState, centers: np.ndarray, lab: np.ndarray, n: int) -> np.ndarray:
+        """Per cluster: is every drawing point next to its cells sealed (ends.sealed), so the paint's
+        whole border there was seen and no view can find more of the line there?"""
+        out = np.zeros(n, dtype=bool)
+        drawing, surface = state.drawing.xyz, state.surface.xyz
+        if n == 0 or len(drawing) == 0 or self.cfg.end_check_m <= 0:
+            return out
+        reach = 1.5 * state.grid.voxel  # a frontier cell touches drawing cells (26-neighbourhood)
+        d, j = cKDTree(centers).query(drawing, k=1, distance_upper_bound=reach)
+        near = np.isfinite(d)
+        if not near.any():
+            return out
+        pts, owner = drawing[near], lab[j[near]]
+        radius = self.cfg.end_width_m
+        lo, hi = pts.min(axis=0) - radius, pts.max(axis=0) + radius
+        local = surface[np.all((surface >= lo) & (surface <= hi), axis=1)]
+        ok = ends.sealed(pts, cKDTree(local), radius, self._surface_voxel)
+        count = np.bincount(owner, minlength=n)
+        open_ = np.bincount(owner, weights=~ok, minlength=n)
+        return (count > 0) & (open_ == 0)
 
     def _aim_point(self, state: ScanState, target: np.ndarray) -> np.ndarray:
         """Where the candidates look: the frontier centroid, or a little past it in the direction the
@@ -95,7 +118,8 @@ class GuidedNBV:
             return None
         R = look_at_rotations(eyes, self._aim_point(state, target))
         cost = np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1)
-        gain = nbv.gains(grid, eyes, R, weights, p_free, state.K, state.image_size, cfg, cost)
+        gain = nbv.gains(grid, eyes, R, weights, p_free, state.K, state.image_size, cfg, cost,
+                         nbv.incidence(eyes, target, normal))
         q = nbv.quality(gain, cost, cfg.lam)
         rank = np.argsort(-q, kind="stable")
         best = float(gain.max())

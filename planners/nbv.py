@@ -75,21 +75,23 @@ def visibility_field(grid: OccupancyGrid, cfg: NBVConfig) -> np.ndarray:
 
 def gains(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights: tuple[np.ndarray, np.ndarray],
           p_free: np.ndarray, K: np.ndarray, image_size: tuple[int, int], cfg: NBVConfig,
-          cost: np.ndarray | None = None) -> np.ndarray:
-    """gain(s) of eq. 5 for all candidates; `weights` is what cell_weights returns.
+          cost: np.ndarray | None = None, facing: np.ndarray | None = None) -> np.ndarray:
+    """gain(s) of eq. 5 for all candidates; `weights` is what cell_weights returns. `facing`, one
+    factor per candidate (see `incidence`), scales what each can expect to observe.
 
     With the candidates' travel `cost`, scoring is coarse to fine: every candidate is cast with a
     ray bundle `coarse_ray_factor` times sparser per axis, and only the `refine_top` best by Q are
     cast with the full bundle. The others keep their coarse gain, scaled to the fine one's units by
     the refined candidates' ratio: their rank only matters if every refined one proves unreachable."""
     f = cfg.coarse_ray_factor
+    w = np.ones(len(eyes)) if facing is None else np.asarray(facing, dtype=np.float64)
     if cost is None or f <= 1 or len(eyes) <= cfg.refine_top:
-        return _cast(grid, eyes, rotations, weights, p_free, ray_bundle(K, image_size, cfg.rays_w, cfg.rays_h), cfg)
-    coarse = _cast(grid, eyes, rotations, weights, p_free,
-                   ray_bundle(K, image_size, max(cfg.rays_w // f, 2), max(cfg.rays_h // f, 2)), cfg)
+        return w * _cast(grid, eyes, rotations, weights, p_free, ray_bundle(K, image_size, cfg.rays_w, cfg.rays_h), cfg)
+    coarse = w * _cast(grid, eyes, rotations, weights, p_free,
+                       ray_bundle(K, image_size, max(cfg.rays_w // f, 2), max(cfg.rays_h // f, 2)), cfg)
     top = np.argpartition(-quality(coarse, cost, cfg.lam), cfg.refine_top - 1)[:cfg.refine_top]
-    fine = _cast(grid, eyes[top], rotations[top], weights, p_free,
-                 ray_bundle(K, image_size, cfg.rays_w, cfg.rays_h), cfg)
+    fine = w[top] * _cast(grid, eyes[top], rotations[top], weights, p_free,
+                          ray_bundle(K, image_size, cfg.rays_w, cfg.rays_h), cfg)
     cs = coarse[top].sum()
     out = coarse * (fine.sum() / cs if cs > 0 else 0.0)
     out[top] = fine
@@ -104,6 +106,18 @@ def _cast(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights:
                               rays, float(cfg.max_range_m), grid.lo, grid.voxel,
                               np.asarray(grid.shape, dtype=np.int64), p_free, w, box[0], box[1],
                               int(numba.get_num_threads()))
+
+
+def incidence(eyes: np.ndarray, targets: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
+    """cos of the angle between each eye's line of sight onto its target and the target's surface
+    normal, clipped at 0: the share of its pixels a patch shows a camera, so what a view can expect
+    to observe of it (a depth camera returns little at grazing incidence). 1 where the normal is
+    unknown (NaN row or None: an edge, a corner)."""
+    if normals is None:
+        return np.ones(len(eyes))
+    v = eyes - targets
+    cos = np.einsum("ij,ij->i", v, np.broadcast_to(normals, v.shape)) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
+    return np.where(np.isfinite(cos), np.clip(cos, 0.0, 1.0), 1.0)
 
 
 def quality(gain: np.ndarray, cost: np.ndarray, lam: float) -> np.ndarray:
