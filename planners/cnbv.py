@@ -115,7 +115,7 @@ class ConstrainedNBV:
                 normals[m] = nrm
         ok = nbv.feasible_eyes(grid, eyes, targets, normals[near], cfg, None, cfg.relaxed_view_angle_deg)
         ok &= ~self._repeats(eyes, targets, state, 6 * grid.voxel)
-        eyes, targets, eye_normals = eyes[ok], targets[ok], normals[near][ok]
+        eyes, targets = eyes[ok], targets[ok]
         timings["candidates_s"] = time.perf_counter() - t0
         if len(eyes) == 0:
             return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "frontier", frontier=frontier, timings=timings)
@@ -124,9 +124,7 @@ class ConstrainedNBV:
         E = np.tile(eyes, (len(self._turns), 1))
         weights = nbv.cell_weights(grid, ijk, cfg)
         cost = np.linalg.norm(E - state.camera_pose[:3, 3], axis=1)
-        facing = np.tile(nbv.incidence(eyes, targets, eye_normals), len(self._turns))
-        gain = nbv.gains(grid, E, R, weights, nbv.visibility_field(grid, cfg), state.K, state.image_size, cfg, cost,
-                         facing)
+        gain = nbv.gains(grid, E, R, weights, nbv.visibility_field(grid, cfg), state.K, state.image_size, cfg, cost)
         q = nbv.quality(gain, cost, cfg.lam)
         rank = np.argsort(-q, kind="stable")
         timings["plan_s"] = time.perf_counter() - t0

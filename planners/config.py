@@ -104,6 +104,9 @@ class NBVConfig(_Strict):
     end_width_m: float = Field(0.012, gt=0, le=0.1, description="half-width of that tube past the tip")
     end_radius_m: float = Field(0.05, gt=0.005, le=0.3, description="drawing within this of the cluster gives its direction")
     end_min_points: int = Field(40, ge=1, le=100_000, description="surface points (2 mm apart) that tube must hold")
+    facing_gain: bool = Field(True, description="each cell a ray meets counts by the cosine at which the ray meets "
+                              "the surface the map says may be there (it faces observed free space); 0 from behind. "
+                              "False: eq. 5 as the paper")
     max_target_visits: int = Field(3, ge=1, le=20, description="give up a frontier cluster after this many views at it")
     ik_candidates: int = Field(40, ge=1, le=10_000, description="ranked candidates the runner tries to reach")
 

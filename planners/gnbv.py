@@ -17,6 +17,20 @@ from planners.growth import GrowthWatch
 from planners.views import look_at_rotations, poses_from, sphere_lattice
 
 
+def _framing(state: ScanState, target: np.ndarray) -> np.ndarray:
+    """Positions of the views whose image holds the target (the first view and the latest one, whose
+    poses the state keeps): a candidate looking at it from nearly there would see it again."""
+    out = []
+    for T in (state.initial_pose, state.camera_pose):
+        p = T[:3, :3].T @ (target - T[:3, 3])
+        if p[2] <= 0:
+            continue
+        u, v, _ = state.K @ (p / p[2])
+        if 0 <= u < state.image_size[0] and 0 <= v < state.image_size[1]:
+            out.append(T[:3, 3])
+    return np.array(out).reshape(-1, 3)
+
+
 class GuidedNBV:
     name = "gnbv"
 
@@ -112,14 +126,14 @@ class GuidedNBV:
         """Ranked (poses, Q, gain) of the candidates around one target, or None if none is worth it."""
         cfg, grid = self.cfg, state.grid
         eyes = target + self._lattice
-        eyes = eyes[nbv.feasible_eyes(grid, eyes, target, normal, cfg, self._views_of(target, state), cone_deg,
+        past = np.vstack([self._views_of(target, state), _framing(state, target)])
+        eyes = eyes[nbv.feasible_eyes(grid, eyes, target, normal, cfg, past, cone_deg,
                                       occupied=occupied)]
         if len(eyes) == 0:
             return None
         R = look_at_rotations(eyes, self._aim_point(state, target))
         cost = np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1)
-        gain = nbv.gains(grid, eyes, R, weights, p_free, state.K, state.image_size, cfg, cost,
-                         nbv.incidence(eyes, target, normal))
+        gain = nbv.gains(grid, eyes, R, weights, p_free, state.K, state.image_size, cfg, cost)
         q = nbv.quality(gain, cost, cfg.lam)
         rank = np.argsort(-q, kind="stable")
         best = float(gain.max())

@@ -36,14 +36,27 @@ def entropy_decrease(grid: OccupancyGrid, box: tuple) -> np.ndarray:
     return _entropy_decrease(grid.logodds[box], c.l_hit, c.l_miss, c.l_min, c.l_max)
 
 
-def cell_weights(grid: OccupancyGrid, frontier_ijk: np.ndarray, cfg: NBVConfig) -> tuple[np.ndarray, np.ndarray]:
-    """h(g)·p_φ(g) per cell, flat, zero where p_φ is negligible; and that box's (lo, hi) corners in
-    metres, (2, 3)."""
+def cell_weights(grid: OccupancyGrid, frontier_ijk: np.ndarray, cfg: NBVConfig) -> tuple:
+    """h(g)·p_φ(g) per cell, flat, zero where p_φ is negligible; that box's (lo, hi) corners in
+    metres, (2, 3); and per cell of the box the normal of the surface that may be there
+    (`facing_normals`) with the box's first cell index."""
     w = np.zeros(grid.shape, dtype=np.float32)
     phi, box = feature_probability(grid, frontier_ijk, cfg)
     w[box] = entropy_decrease(grid, box) * phi
     corners = np.array([[s.start for s in box], [s.stop for s in box]], dtype=np.float64) * grid.voxel + grid.lo
-    return w.reshape(-1), corners
+    if not cfg.facing_gain:
+        return w.reshape(-1), corners
+    return w.reshape(-1), corners, facing_normals(grid, box), np.array([s.start for s in box], dtype=np.int64)
+
+
+def facing_normals(grid: OccupancyGrid, box: tuple) -> np.ndarray:
+    """Per cell of the box, the outward normal of a surface there as far as the map tells: a surface
+    can only be seen from observed free space, so it faces up the gradient of the (smoothed) free
+    indicator. Zero where no free space is near (deep inside the unknown: no orientation known)."""
+    free = ndimage.gaussian_filter((grid.logodds[box] < 0).astype(np.float32), sigma=1.0)
+    g = np.stack(np.gradient(free), axis=-1)
+    n = np.linalg.norm(g, axis=-1, keepdims=True)
+    return np.where(n > 0.05, g / np.maximum(n, 1e-9), 0.0).astype(np.float32)
 
 
 def _entropy_decrease(L: np.ndarray, l_hit: float, l_miss: float, l_min: float, l_max: float) -> np.ndarray:
@@ -75,23 +88,21 @@ def visibility_field(grid: OccupancyGrid, cfg: NBVConfig) -> np.ndarray:
 
 def gains(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights: tuple[np.ndarray, np.ndarray],
           p_free: np.ndarray, K: np.ndarray, image_size: tuple[int, int], cfg: NBVConfig,
-          cost: np.ndarray | None = None, facing: np.ndarray | None = None) -> np.ndarray:
-    """gain(s) of eq. 5 for all candidates; `weights` is what cell_weights returns. `facing`, one
-    factor per candidate (see `incidence`), scales what each can expect to observe.
+          cost: np.ndarray | None = None) -> np.ndarray:
+    """gain(s) of eq. 5 for all candidates; `weights` is what cell_weights returns.
 
     With the candidates' travel `cost`, scoring is coarse to fine: every candidate is cast with a
     ray bundle `coarse_ray_factor` times sparser per axis, and only the `refine_top` best by Q are
     cast with the full bundle. The others keep their coarse gain, scaled to the fine one's units by
     the refined candidates' ratio: their rank only matters if every refined one proves unreachable."""
     f = cfg.coarse_ray_factor
-    w = np.ones(len(eyes)) if facing is None else np.asarray(facing, dtype=np.float64)
     if cost is None or f <= 1 or len(eyes) <= cfg.refine_top:
-        return w * _cast(grid, eyes, rotations, weights, p_free, ray_bundle(K, image_size, cfg.rays_w, cfg.rays_h), cfg)
-    coarse = w * _cast(grid, eyes, rotations, weights, p_free,
-                       ray_bundle(K, image_size, max(cfg.rays_w // f, 2), max(cfg.rays_h // f, 2)), cfg)
+        return _cast(grid, eyes, rotations, weights, p_free, ray_bundle(K, image_size, cfg.rays_w, cfg.rays_h), cfg)
+    coarse = _cast(grid, eyes, rotations, weights, p_free,
+                   ray_bundle(K, image_size, max(cfg.rays_w // f, 2), max(cfg.rays_h // f, 2)), cfg)
     top = np.argpartition(-quality(coarse, cost, cfg.lam), cfg.refine_top - 1)[:cfg.refine_top]
-    fine = w[top] * _cast(grid, eyes[top], rotations[top], weights, p_free,
-                          ray_bundle(K, image_size, cfg.rays_w, cfg.rays_h), cfg)
+    fine = _cast(grid, eyes[top], rotations[top], weights, p_free,
+                 ray_bundle(K, image_size, cfg.rays_w, cfg.rays_h), cfg)
     cs = coarse[top].sum()
     out = coarse * (fine.sum() / cs if cs > 0 else 0.0)
     out[top] = fine
@@ -100,24 +111,16 @@ def gains(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights:
 
 def _cast(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights: tuple[np.ndarray, np.ndarray],
           p_free: np.ndarray, rays: np.ndarray, cfg: NBVConfig) -> np.ndarray:
-    w, box = weights
+    w, box = weights[0], weights[1]
+    facing, facing_lo = (weights[2], weights[3]) if len(weights) > 2 else (_NO_FACING, np.zeros(3, np.int64))
     return raycast.view_gains(np.ascontiguousarray(eyes, dtype=np.float64),
                               np.ascontiguousarray(rotations, dtype=np.float64),
                               rays, float(cfg.max_range_m), grid.lo, grid.voxel,
                               np.asarray(grid.shape, dtype=np.int64), p_free, w, box[0], box[1],
-                              int(numba.get_num_threads()))
+                              int(numba.get_num_threads()), facing, facing_lo)
 
 
-def incidence(eyes: np.ndarray, targets: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
-    """cos of the angle between each eye's line of sight onto its target and the target's surface
-    normal, clipped at 0: the share of its pixels a patch shows a camera, so what a view can expect
-    to observe of it (a depth camera returns little at grazing incidence). 1 where the normal is
-    unknown (NaN row or None: an edge, a corner)."""
-    if normals is None:
-        return np.ones(len(eyes))
-    v = eyes - targets
-    cos = np.einsum("ij,ij->i", v, np.broadcast_to(normals, v.shape)) / np.maximum(np.linalg.norm(v, axis=1), 1e-9)
-    return np.where(np.isfinite(cos), np.clip(cos, 0.0, 1.0), 1.0)
+_NO_FACING = np.zeros((0, 1, 1, 3), dtype=np.float32)
 
 
 def quality(gain: np.ndarray, cost: np.ndarray, lam: float) -> np.ndarray:

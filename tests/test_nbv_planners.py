@@ -143,3 +143,90 @@ def test_coarse_to_fine_scoring_refines_the_best_and_keeps_the_ranking():
     assert refined[best]
     assert q_exact[best] >= q_exact.max() - 0.05 * np.ptp(q_exact)  # as good as the exact choice, or nearly
     assert np.array_equal(nbv.gains(state.grid, eyes, R, w, p_free, K, SIZE, c), exact)  # no cost: exact
+
+
+def _half_space_grid():
+    """Free air above z = 0.2 over the whole grid, unknown below: the surface, if any, faces up."""
+    cfg = PlannersConfig()
+    grid = OccupancyGrid(cfg.grid)
+    k = int(round((0.2 - grid.lo[2]) / grid.voxel))
+    grid.logodds[:, :, k:] = -1.0
+    return cfg, grid, k
+
+
+def test_facing_normals_point_from_the_unknown_into_observed_free_space():
+    from planners import nbv
+
+    cfg, grid, k = _half_space_grid()
+    box = (slice(40, 60), slice(60, 80), slice(k - 6, k + 6))
+    n = nbv.facing_normals(grid, box)
+    assert np.allclose(n[:, :, 5], [0, 0, 1], atol=1e-6)  # the unknown layer under the air faces up
+    assert np.all(n[:, :, 0] == 0)  # deep in the unknown: no orientation known
+
+
+def test_facing_scales_the_gain_by_incidence_and_blocks_views_from_behind():
+    """A cell whose surface faces up gains most for a camera straight above it, half at 60 deg, none
+    for a camera looking at it from below (it would see the surface's back)."""
+    from planners import nbv
+    from planners.views import look_at_rotations
+
+    cfg, grid, k = _half_space_grid()
+    c = cfg.nbv.model_copy(update={"coarse_ray_factor": 1})
+    cell = np.array([50, 70, k - 1])
+    target = grid.centers(cell[None])[0]
+    w = np.zeros(grid.shape, dtype=np.float32)
+    w[48:53, 68:73, k - 1] = 1.0  # a 5 x 5 patch of the layer under the air
+    lo = cell - 6
+    box = tuple(slice(int(a), int(a) + 13) for a in lo)
+    corners = np.array([lo, lo + 13], dtype=np.float64) * grid.voxel + grid.lo
+    p_free = np.ones(grid.logodds.size, dtype=np.float32)  # nothing occludes: only the facing differs
+    tilt = 0.02  # off the vertical, where a look-at frame has no unique roll
+    dirs = np.array([[tilt, 0, 1.0], [np.sin(np.pi / 3), 0, np.cos(np.pi / 3)], [tilt, 0, -1.0]])
+    eyes = target + 0.4 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    R = look_at_rotations(eyes, target)
+    flat = (w.reshape(-1), corners)
+    with_facing = flat + (nbv.facing_normals(grid, box), lo.astype(np.int64))
+    plain = nbv.gains(grid, eyes, R, flat, p_free, K, SIZE, c)
+    faced = nbv.gains(grid, eyes, R, with_facing, p_free, K, SIZE, c)
+    assert np.all(plain > 0)  # every camera sees the patch
+    ratio = faced / plain
+    assert ratio[0] == pytest.approx(1.0, abs=0.02) and ratio[1] == pytest.approx(0.5, abs=0.05)
+    assert faced[2] == 0.0
+
+
+def test_sealed_paint_has_seen_surface_all_round_and_a_border_does_not():
+    from scipy.spatial import cKDTree
+
+    from planners.ends import sealed
+
+    xs, ys = np.meshgrid(np.arange(0.0, 0.2, 0.002), np.arange(0.0, 0.1, 0.002))
+    plane = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], 1)
+    tree = cKDTree(plane)
+    pts = np.array([[0.1, 0.05, 0.0],    # inside what was seen: sealed
+                    [0.1, 0.001, 0.0],   # on the border of the seen surface: paint may go on
+                    [0.199, 0.05, 0.0]])
+    assert sealed(pts, tree, 0.012, 0.002).tolist() == [True, False, False]
+    sparse = cKDTree(plane[::16])  # a few scattered returns do not seal anything
+    assert not sealed(pts[:1], sparse, 0.012, 0.002)[0]
+
+
+def test_cnbv_gives_up_a_target_whose_view_found_no_drawing():
+    from cellctl.scan import make_planner
+
+    cfg, state = _state()
+    planner = make_planner("cnbv", cfg)
+    first = planner.next_view(state)
+    assert not first.stop
+    # the view was taken (step 1) and found nothing: the drawing did not grow
+    state.step = 1
+    state.viewpoints = np.vstack([state.viewpoints, first.poses[0][:3, 3]])
+    second = planner.next_view(state)
+    if not second.stop:
+        assert np.linalg.norm(second.target - first.target) > 6 * state.grid.voxel
+    # nor is a view direction taken again onto a target already looked at
+    again = make_planner("cnbv", cfg)
+    p1 = again.next_view(state)
+    state.step = 2
+    state.viewpoints = np.vstack([state.viewpoints, p1.poses[0][:3, 3]])
+    mask = again._repeats(p1.poses[:, :3, 3], np.broadcast_to(p1.target, (len(p1.poses), 3)), state, 0.06)
+    assert mask[0]
