@@ -55,9 +55,7 @@ class GlobalNBV:
         box_lo = np.maximum(np.floor((lo - cfg.global_margin_m - grid.lo) / grid.voxel).astype(int), 0)
         box_hi = np.minimum(np.ceil((hi + cfg.global_margin_m - grid.lo) / grid.voxel).astype(int), grid.shape)
         box = tuple(slice(int(a), int(b)) for a, b in zip(box_lo, box_hi))
-        w = np.zeros(grid.shape, dtype=np.float32)
-        w[box] = nbv.entropy_decrease(grid, box)
-        corners = np.array([box_lo, box_hi], dtype=np.float64) * grid.voxel + grid.lo
+        weights = nbv.CellWeights.on_box(grid, box, nbv.entropy_decrease(grid, box), cfg.facing_gain)
         ok = nbv.feasible_eyes(grid, eyes, center, None, cfg, line_of_sight=False)  # it looks at the whole object
         eyes = eyes[ok]
         # no candidate left (all spent or unreachable) is a different end from exhausted gain
@@ -66,7 +64,7 @@ class GlobalNBV:
                             timings={"plan_s": time.perf_counter() - t0})
         R = look_at_rotations(eyes, center)
         cost = np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1)
-        gain = nbv.gains(grid, eyes, R, (w.reshape(-1), corners), nbv.visibility_field(grid, cfg), state.K,
+        gain = nbv.gains(grid, eyes, R, weights, nbv.visibility_field(grid, cfg), state.K,
                          state.image_size, cfg, cost)
         q = nbv.quality(gain, cost, cfg.lam)
         rank = np.argsort(-q, kind="stable")

@@ -3,6 +3,8 @@ candidates of a step in one compiled call."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numba
 import numpy as np
 from scipy import ndimage
@@ -36,17 +38,30 @@ def entropy_decrease(grid: OccupancyGrid, box: tuple) -> np.ndarray:
     return _entropy_decrease(grid.logodds[box], c.l_hit, c.l_miss, c.l_min, c.l_max)
 
 
-def cell_weights(grid: OccupancyGrid, frontier_ijk: np.ndarray, cfg: NBVConfig) -> tuple:
-    """h(g)·p_φ(g) per cell, flat, zero where p_φ is negligible; that box's (lo, hi) corners in
-    metres, (2, 3); and per cell of the box the normal of the surface that may be there
-    (`facing_normals`) with the box's first cell index."""
-    w = np.zeros(grid.shape, dtype=np.float32)
+@dataclass
+class CellWeights:
+    """What a view can gain, on the box of cells where it is not negligible: per cell h(g)·p_φ(g) and
+    the outward normal of the surface that may be there (zero: none known or not used), packed as
+    (bx, by, bz, 4) so the kernel reads both from one place; the box starts at cell `lo`."""
+
+    cells: np.ndarray  # (bx, by, bz, 4) float32: weight, normal x, y, z
+    lo: np.ndarray  # (3,) int64 first cell of the box
+    facing: bool  # scale each cell by the cosine at which a ray meets its normal
+
+    @classmethod
+    def on_box(cls, grid: OccupancyGrid, box: tuple, w: np.ndarray, facing: bool) -> "CellWeights":
+        cells = np.zeros(w.shape + (4,), dtype=np.float32)
+        cells[..., 0] = w
+        if facing:
+            cells[..., 1:] = facing_normals(grid, box)
+        return cls(cells, np.array([s.start for s in box], dtype=np.int64), facing)
+
+
+def cell_weights(grid: OccupancyGrid, frontier_ijk: np.ndarray, cfg: NBVConfig) -> CellWeights:
+    """h(g)·p_φ(g) on the box round the frontier where p_φ is not negligible, with the surface
+    normals of `facing_normals` when cfg.facing_gain."""
     phi, box = feature_probability(grid, frontier_ijk, cfg)
-    w[box] = entropy_decrease(grid, box) * phi
-    corners = np.array([[s.start for s in box], [s.stop for s in box]], dtype=np.float64) * grid.voxel + grid.lo
-    if not cfg.facing_gain:
-        return w.reshape(-1), corners
-    return w.reshape(-1), corners, facing_normals(grid, box), np.array([s.start for s in box], dtype=np.int64)
+    return CellWeights.on_box(grid, box, entropy_decrease(grid, box) * phi, cfg.facing_gain)
 
 
 def facing_normals(grid: OccupancyGrid, box: tuple) -> np.ndarray:
@@ -86,7 +101,7 @@ def visibility_field(grid: OccupancyGrid, cfg: NBVConfig) -> np.ndarray:
     return p_free.reshape(-1)
 
 
-def gains(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights: tuple[np.ndarray, np.ndarray],
+def gains(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights: CellWeights,
           p_free: np.ndarray, K: np.ndarray, image_size: tuple[int, int], cfg: NBVConfig,
           cost: np.ndarray | None = None) -> np.ndarray:
     """gain(s) of eq. 5 for all candidates; `weights` is what cell_weights returns.
@@ -109,18 +124,13 @@ def gains(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights:
     return out
 
 
-def _cast(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights: tuple[np.ndarray, np.ndarray],
+def _cast(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights: CellWeights,
           p_free: np.ndarray, rays: np.ndarray, cfg: NBVConfig) -> np.ndarray:
-    w, box = weights[0], weights[1]
-    facing, facing_lo = (weights[2], weights[3]) if len(weights) > 2 else (_NO_FACING, np.zeros(3, np.int64))
     return raycast.view_gains(np.ascontiguousarray(eyes, dtype=np.float64),
                               np.ascontiguousarray(rotations, dtype=np.float64),
                               rays, float(cfg.max_range_m), grid.lo, grid.voxel,
-                              np.asarray(grid.shape, dtype=np.int64), p_free, w, box[0], box[1],
-                              int(numba.get_num_threads()), facing, facing_lo)
-
-
-_NO_FACING = np.zeros((0, 1, 1, 3), dtype=np.float32)
+                              np.asarray(grid.shape, dtype=np.int64), p_free, weights.cells, weights.lo,
+                              weights.facing, int(numba.get_num_threads()))
 
 
 def quality(gain: np.ndarray, cost: np.ndarray, lam: float) -> np.ndarray:

@@ -130,20 +130,24 @@ def _traverse_mark(ox, oy, oz, dx, dy, dz, t_start, t_end, lo, voxel, nx, ny, nz
 
 
 @nb.njit(cache=True, parallel=True)
-def view_gains(positions, rotations, ray_dirs, max_range, lo, voxel, shape, p_free, weight, roi_lo, roi_hi, n_chunks,
-               facing, facing_lo):
+def view_gains(positions, rotations, ray_dirs, max_range, lo, voxel, shape, p_free, cells, box_lo, facing, n_chunks):
     """gain(s) of eq. 5 for every candidate in one call: along each ray of the candidate's
-    (subsampled) image, sum weight[g] = h(g)·p_φ(g) times the visibility of eq. 8 (product of
-    P[o=0] of the cells before g); each cell counts once per candidate. weight is zero outside the
-    box [roi_lo, roi_hi], so rays that miss it are skipped and the others stop where they leave it.
-    `facing` (bx, by, bz, 3), starting at cell `facing_lo`: per cell the outward normal of the surface
-    that may be there (zero: none known); a cell's weight is scaled by the cosine at which the ray
-    meets that surface (0 from behind), or by 1/2, the mean over orientations, without a normal.
-    An empty `facing` turns this off."""
+    (subsampled) image, sum the weight h(g)·p_φ(g) of each cell of the box times the visibility of
+    eq. 8 (product of P[o=0] of the cells before g, p_free over the whole grid); each cell counts
+    once per candidate. `cells` (bx, by, bz, 4) holds per box cell the weight and, with `facing`, the
+    outward normal of the surface that may be there: the weight is scaled by the cosine at which
+    the ray meets it (0 from behind), or by 1/2, the mean over orientations, where no normal is
+    known. Rays that miss the box are skipped and the others stop where they leave it."""
     nx, ny, nz = shape[0], shape[1], shape[2]
+    bx, by, bz = cells.shape[0], cells.shape[1], cells.shape[2]
+    roi_lo = np.empty(3)
+    roi_hi = np.empty(3)
+    for a in range(3):
+        roi_lo[a] = lo[a] + box_lo[a] * voxel
+        roi_hi[a] = lo[a] + (box_lo[a] + cells.shape[a]) * voxel
     m = positions.shape[0]
     gains = np.zeros(m, dtype=np.float64)
-    stamps = np.zeros((n_chunks, nx * ny * nz), dtype=np.int32)
+    stamps = np.zeros((n_chunks, bx * by * bz), dtype=np.int32)
     per = (m + n_chunks - 1) // n_chunks
     for c in nb.prange(n_chunks):
         stamp = stamps[c]
@@ -164,7 +168,7 @@ def view_gains(positions, rotations, ray_dirs, max_range, lo, voxel, shape, p_fr
                 t_end = _box_exit(ox, oy, oz, dx, dy, dz, roi_lo, roi_hi, max_range)
                 if t_end > 0.0:
                     total += _ray_gain(ox, oy, oz, dx, dy, dz, t_end, lo, voxel, nx, ny, nz,
-                                       p_free, weight, stamp, tag, facing, facing_lo)
+                                       p_free, cells, box_lo, facing, stamp, tag)
             gains[s] = total
     return gains
 
@@ -177,34 +181,36 @@ def _box_exit(ox, oy, oz, dx, dy, dz, blo, bhi, max_range):
 
 
 @nb.njit(cache=True, inline="always")
-def _ray_gain(ox, oy, oz, dx, dy, dz, max_range, lo, voxel, nx, ny, nz, p_free, weight, stamp, tag, facing, facing_lo):
+def _ray_gain(ox, oy, oz, dx, dy, dz, max_range, lo, voxel, nx, ny, nz, p_free, cells, box_lo, facing, stamp, tag):
     hi = (lo[0] + nx * voxel, lo[1] + ny * voxel, lo[2] + nz * voxel)
     t0, t1 = _clip(ox, oy, oz, dx, dy, dz, 0.0, max_range, lo, hi)
     if t0 >= t1:
         return 0.0
     i, j, k, si, sj, sk, tx, ty, tz, tdx, tdy, tdz = _dda_start(ox, oy, oz, dx, dy, dz, t0, lo, voxel, nx, ny, nz)
+    bx, by, bz = cells.shape[0], cells.shape[1], cells.shape[2]
     vis = 1.0
     g = 0.0
     inside = True
     while inside:
-        f = _flat(i, j, k, ny, nz)
-        if stamp[f] != tag:
-            stamp[f] = tag
-            w = weight[f]
-            if w > 0.0 and facing.shape[0] > 0:
-                a = i - facing_lo[0]
-                b = j - facing_lo[1]
-                c = k - facing_lo[2]
-                if 0 <= a < facing.shape[0] and 0 <= b < facing.shape[1] and 0 <= c < facing.shape[2]:
-                    fx = facing[a, b, c, 0]
-                    fy = facing[a, b, c, 1]
-                    fz = facing[a, b, c, 2]
-                    if fx != 0.0 or fy != 0.0 or fz != 0.0:
-                        w *= max(0.0, -(dx * fx + dy * fy + dz * fz))
-                    else:
-                        w *= 0.5
-            g += vis * w
-        vis *= p_free[f]
+        a = i - box_lo[0]
+        b = j - box_lo[1]
+        c = k - box_lo[2]
+        if 0 <= a < bx and 0 <= b < by and 0 <= c < bz:
+            q = (a * by + b) * bz + c
+            if stamp[q] != tag:
+                stamp[q] = tag
+                w = cells[a, b, c, 0]
+                if w > 0.0:
+                    if facing:
+                        fx = cells[a, b, c, 1]
+                        fy = cells[a, b, c, 2]
+                        fz = cells[a, b, c, 3]
+                        if fx != 0.0 or fy != 0.0 or fz != 0.0:
+                            w *= max(0.0, -(dx * fx + dy * fy + dz * fz))
+                        else:
+                            w *= 0.5
+                    g += vis * w
+        vis *= p_free[_flat(i, j, k, ny, nz)]
         if vis < 1e-4 or min(tx, ty, tz) >= t1:
             return g
         i, j, k, tx, ty, tz, inside = _dda_next(i, j, k, si, sj, sk, tx, ty, tz, tdx, tdy, tdz, nx, ny, nz)
@@ -243,7 +249,8 @@ def warmup() -> None:
     shape = np.array([4, 4, 4], dtype=np.int64)
     marks = np.zeros(64, dtype=np.int8)
     mark_scan(np.array([0.5, 0.5, 3.5]) * 0.01, np.array([[0.02, 0.02, 0.005]]), lo, 0.01, shape, 1.0, 0.02, marks)
-    view_gains(np.array([[0.02, 0.02, 0.035]]), np.eye(3)[None], np.array([[0.0, 0.0, 1.0]]), 0.1, lo, 0.01, shape,
-               np.ones(64, np.float32), np.ones(64, np.float32), lo, np.full(3, 0.04), 1,
-               np.zeros((1, 1, 1, 3), np.float32), np.zeros(3, np.int64))
+    cells = np.ones((4, 4, 4, 4), np.float32)
+    for facing in (False, True):
+        view_gains(np.array([[0.02, 0.02, 0.035]]), np.eye(3)[None], np.array([[0.0, 0.0, 1.0]]), 0.1, lo, 0.01, shape,
+                   np.ones(64, np.float32), cells, np.zeros(3, np.int64), facing, 1)
     segments_blocked(np.zeros((1, 3)), np.full((1, 3), 0.03), lo, 0.01, shape, np.zeros(64, np.uint8))

@@ -174,20 +174,17 @@ def test_facing_scales_the_gain_by_incidence_and_blocks_views_from_behind():
     c = cfg.nbv.model_copy(update={"coarse_ray_factor": 1})
     cell = np.array([50, 70, k - 1])
     target = grid.centers(cell[None])[0]
-    w = np.zeros(grid.shape, dtype=np.float32)
-    w[48:53, 68:73, k - 1] = 1.0  # a 5 x 5 patch of the layer under the air
     lo = cell - 6
     box = tuple(slice(int(a), int(a) + 13) for a in lo)
-    corners = np.array([lo, lo + 13], dtype=np.float64) * grid.voxel + grid.lo
+    w = np.zeros((13, 13, 13), dtype=np.float32)
+    w[4:9, 4:9, 5] = 1.0  # a 5 x 5 patch of the layer under the air
     p_free = np.ones(grid.logodds.size, dtype=np.float32)  # nothing occludes: only the facing differs
     tilt = 0.02  # off the vertical, where a look-at frame has no unique roll
     dirs = np.array([[tilt, 0, 1.0], [np.sin(np.pi / 3), 0, np.cos(np.pi / 3)], [tilt, 0, -1.0]])
     eyes = target + 0.4 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     R = look_at_rotations(eyes, target)
-    flat = (w.reshape(-1), corners)
-    with_facing = flat + (nbv.facing_normals(grid, box), lo.astype(np.int64))
-    plain = nbv.gains(grid, eyes, R, flat, p_free, K, SIZE, c)
-    faced = nbv.gains(grid, eyes, R, with_facing, p_free, K, SIZE, c)
+    plain = nbv.gains(grid, eyes, R, nbv.CellWeights.on_box(grid, box, w, False), p_free, K, SIZE, c)
+    faced = nbv.gains(grid, eyes, R, nbv.CellWeights.on_box(grid, box, w, True), p_free, K, SIZE, c)
     assert np.all(plain > 0)  # every camera sees the patch
     ratio = faced / plain
     assert ratio[0] == pytest.approx(1.0, abs=0.02) and ratio[1] == pytest.approx(0.5, abs=0.05)
