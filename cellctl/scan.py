@@ -28,6 +28,7 @@ from planners.config import PlannersConfig
 from planners.grid import OccupancyGrid
 from planners.metrics import coverage, displacement
 from planners.motion import chain_kernel
+from planners.motion import collision
 from planners.motion.collision import CollisionChecker, RobotCollisionModel
 from planners.motion.ik import Unreachable
 from planners.motion.kinematics import Kinematics
@@ -151,6 +152,8 @@ class ScanJob:
         self.progress = progress
         raycast.warmup()  # compile before the clock starts, like any service would at boot
         chain_kernel.warmup()
+        clouds.warmup()
+        collision.warmup()
         self.grid = OccupancyGrid(pcfg.grid)
         self.surface = Cloud.empty()
         self.drawing = Cloud.empty()

@@ -103,12 +103,17 @@ class OccupancyGrid:
 def frontier_clusters(frontier: np.ndarray, min_size: int) -> tuple[np.ndarray, int]:
     """Connected components (26-neighbourhood) of the frontier, small ones dropped as noise.
     Returns (labels with 0 = none, number of clusters) relabelled 1..n."""
-    labels, n = ndimage.label(frontier, structure=_N26)
+    box = ndimage.find_objects(frontier.astype(np.int8))  # label only the box round the frontier
+    full = np.zeros(frontier.shape, dtype=np.int32)
+    if not box or box[0] is None:
+        return full, 0
+    labels, n = ndimage.label(frontier[box[0]], structure=_N26)
     if n == 0:
-        return labels, 0
+        return full, 0
     sizes = np.bincount(labels.ravel(), minlength=n + 1)
     keep = sizes >= min_size
     keep[0] = False
     remap = np.zeros(n + 1, dtype=np.int32)
     remap[keep] = np.arange(1, int(keep.sum()) + 1)
-    return remap[labels], int(keep.sum())
+    full[box[0]] = remap[labels]
+    return full, int(keep.sum())

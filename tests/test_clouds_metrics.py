@@ -63,3 +63,15 @@ def test_coverage_on_hand_made_clouds():
 def test_displacement_sums_straight_moves():
     assert displacement(np.array([[0, 0, 0], [0.3, 0, 0], [0.3, 0.4, 0]])) == pytest.approx(0.7)
     assert displacement(np.array([[1.0, 2, 3]])) == 0.0
+
+
+def test_compiled_colour_filter_matches_the_hsv_definition():
+    """color_mask runs rgb_to_hsv's arithmetic per pixel in compiled code: the same mask, hue wrap included."""
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (200_000, 3), dtype=np.uint8)
+    for hue, half, s_min, v_min in [(0.0, 20.0, 0.5, 0.15), (350.0, 25.0, 0.5, 0.15), (120.0, 30.0, 0.3, 0.1)]:
+        hsv = clouds.rgb_to_hsv(rgb)
+        dh = np.abs((hsv[:, 0] - hue + 180.0) % 360.0 - 180.0)
+        ref = (dh <= half) & (hsv[:, 1] >= s_min) & (hsv[:, 2] >= v_min)
+        assert ref.sum() > 1000
+        assert np.array_equal(clouds.color_mask(rgb, hue, half, s_min, v_min), ref)

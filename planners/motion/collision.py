@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 from typing import Annotated
 
 import fcl
+import numba as nb
 import numpy as np
 import trimesh
 from pydantic import BaseModel, ConfigDict, Field
@@ -336,6 +337,39 @@ def _ball_cover(vertices: np.ndarray, faces: np.ndarray, slab_m: float = 0.05) -
     return np.array(centres), np.array(radii)
 
 
+@nb.njit(cache=True, parallel=True)
+def _on_parts(pts, centres, reach, R, t, plane_n, plane_d, plane_start, pad):
+    """Per point: inside some part's hull grown by `pad` (the part's bounding ball first, then every
+    face plane in the part's frame)? One compiled pass over a D435 frame's 400 k points."""
+    n = pts.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    for i in nb.prange(n):
+        x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
+        for k in range(centres.shape[0]):
+            dx, dy, dz = x - centres[k, 0], y - centres[k, 1], z - centres[k, 2]
+            if dx * dx + dy * dy + dz * dz > reach[k] * reach[k]:
+                continue
+            ex, ey, ez = x - t[k, 0], y - t[k, 1], z - t[k, 2]
+            lx = ex * R[k, 0, 0] + ey * R[k, 1, 0] + ez * R[k, 2, 0]  # (p - t) @ R: into the part's frame
+            ly = ex * R[k, 0, 1] + ey * R[k, 1, 1] + ez * R[k, 2, 1]
+            lz = ex * R[k, 0, 2] + ey * R[k, 1, 2] + ez * R[k, 2, 2]
+            inside = True
+            for f in range(plane_start[k], plane_start[k + 1]):
+                if lx * plane_n[f, 0] + ly * plane_n[f, 1] + lz * plane_n[f, 2] > plane_d[f] + pad:
+                    inside = False
+                    break
+            if inside:
+                out[i] = True
+                break
+    return out
+
+
+def warmup() -> None:
+    """Compile (or load from numba's cache) the robot self-filter before the first timed step."""
+    one = np.zeros((1, 3))
+    _on_parts(one, one, np.ones(1), np.eye(3)[None], one, one, np.ones(1), np.array([0, 1], np.int64), 0.0)
+
+
 def _face_planes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Outward unit normals (m, 3) and offsets (m,) of a convex hull's faces: inside is n.x <= d."""
     a, b, c = (vertices[faces[:, i]] for i in range(3))
@@ -439,6 +473,11 @@ class RobotCollisionModel:
         self._centre = (lo + hi) / 2
         self._radius = np.array([np.linalg.norm(p.vertices - c, axis=1).max() for p, c in zip(parts, self._centre)])
         self._planes = [_face_planes(p.vertices, p.faces) for p in parts]  # for on_robot
+        # the same planes packed for the compiled filter: all parts' normals and offsets, part k's at
+        # rows _plane_start[k]:_plane_start[k + 1]
+        self._plane_n = np.ascontiguousarray(np.concatenate([n for n, _ in self._planes]), dtype=np.float64)
+        self._plane_d = np.ascontiguousarray(np.concatenate([d for _, d in self._planes]), dtype=np.float64)
+        self._plane_start = np.concatenate([[0], np.cumsum([len(d) for _, d in self._planes])]).astype(np.int64)
 
         if home_q is None:
             home_q = (kin.lower + kin.upper) / 2
@@ -496,20 +535,8 @@ class RobotCollisionModel:
             return out
         P = self.part_poses(q)
         c = np.einsum("pij,pj->pi", P[:, :3, :3], self._centre) + P[:, :3, 3]
-        reach = (self._radius + pad_m)[:, None]
-        # one pass over all points against the box round every part; a view of the workpiece has
-        # few points near the arm, so the per-part tests below see only those
-        lo, hi = (c - reach).min(axis=0), (c + reach).max(axis=0)
-        cand = np.flatnonzero(np.all((pts >= lo) & (pts <= hi), axis=1))
-        sub = pts[cand]
-        for k in range(len(self.parts)):  # ~12 parts; each a vectorized test on the points near it
-            near = np.flatnonzero(np.sum((sub - c[k]) ** 2, axis=1) <= (self._radius[k] + pad_m) ** 2)
-            if len(near) == 0:
-                continue
-            local = (sub[near] - P[k, :3, 3]) @ P[k, :3, :3]  # into the part's frame
-            n, d = self._planes[k]
-            out[cand[near[np.all(local @ n.T <= d + pad_m, axis=1)]]] = True
-        return out
+        return _on_parts(np.ascontiguousarray(pts), c, self._radius + pad_m, np.ascontiguousarray(P[:, :3, :3]),
+                         np.ascontiguousarray(P[:, :3, 3]), self._plane_n, self._plane_d, self._plane_start, float(pad_m))
 
     def _pairs_colliding(self, q: np.ndarray, pairs: np.ndarray, poses: np.ndarray | None = None) -> np.ndarray:
         """Boolean per pair; numpy bounding-sphere test first, fcl only for the overlapping ones."""
