@@ -1,6 +1,7 @@
 """Constrained NBV (§V-B, Alg. 2): a search space around every frontier cell, each candidate position
 tried with several orientations (pitch and yaw about the direction to its nearest frontier cell),
-all scored by Q in one kernel call."""
+all scored by Q in one kernel call. Which frontier still deserves a view is kept as G-NBV keeps it
+(planners.targets), per cluster: the target of a view is the centroid of the cluster it looks at."""
 
 from __future__ import annotations
 
@@ -12,8 +13,7 @@ from scipy.spatial import cKDTree
 from planners import nbv
 from planners.base import ScanState, ViewPlan
 from planners.config import PlannersConfig
-from planners.grid import frontier_clusters
-from planners.growth import GrowthWatch
+from planners.targets import TargetBook, framing
 from planners.views import look_at_rotations, poses_from
 
 
@@ -34,33 +34,37 @@ class ConstrainedNBV:
         n = self.cfg.cnbv_angle_steps
         offs = (np.arange(n) - (n - 1) / 2) * a
         self._turns = [(y, p) for y in offs for p in offs]
-        self._given_up: list[np.ndarray] = []  # targets that proved unreachable or without gain
-        self._targets: list[np.ndarray] = []  # the target of every plan handed out
-        self._target_steps: list[int] = []  # the step each was planned at
+        self.book = TargetBook(cfg)
         self._first_gain: float | None = None
-        self._growth = GrowthWatch(self.cfg.min_view_growth_voxels)
+        self._unreachable = np.zeros((0, 3))  # candidate positions the runner could not reach
+        self._last: tuple | None = None  # (step, ranked candidate positions, the centroid each looks at)
 
     def reject(self, plan: ViewPlan) -> None:
-        if plan.target is not None:
-            self._given_up.append(np.asarray(plan.target))
+        """The runner reached none of the candidates it tried: those positions are dropped from now on
+        (the lattice is fixed, so they come back exactly), not the cluster they looked at; its other
+        candidates may be reachable. A cluster with no candidate left is left by itself."""
+        tried = plan.poses[:max(plan.tried, 1), :3, 3]
+        if len(tried):
+            self._unreachable = np.vstack([self._unreachable, tried])
 
-    def _repeats(self, eyes: np.ndarray, targets: np.ndarray, state: ScanState, near: float) -> np.ndarray:
-        """Mask of candidates that would look at their target from (nearly) the direction of a view
-        already planned for a target there: that view saw what this one would."""
-        past = [(t, state.viewpoints[s + 1]) for t, s in zip(self._targets, self._target_steps)
-                if s + 1 < len(state.viewpoints)]
+    def _repeats(self, eyes: np.ndarray, owner: np.ndarray, cents: np.ndarray, state: ScanState) -> np.ndarray:
+        """Mask of candidates that would look at their cluster from (nearly) the direction of a view
+        already planned for it, or of a view whose image held it: that view saw what this one would."""
         out = np.zeros(len(eyes), dtype=bool)
-        if not past or self.cfg.revisit_angle_deg <= 0:
+        if self.cfg.revisit_angle_deg <= 0:
             return out
-        T = np.array([t for t, _ in past])
-        V = np.array([v for _, v in past])
-        same = np.linalg.norm(targets[:, None, :] - T[None, :, :], axis=2) < near  # (M, P)
-        u = eyes - targets
-        u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
-        pv = V[None, :, :] - targets[:, None, :]
-        pv /= np.maximum(np.linalg.norm(pv, axis=2, keepdims=True), 1e-9)
-        close = np.einsum("mj,mpj->mp", u, pv) >= np.cos(np.deg2rad(self.cfg.revisit_angle_deg))
-        return np.any(same & close, axis=1)
+        limit = np.cos(np.deg2rad(self.cfg.revisit_angle_deg))
+        for c in np.unique(owner):  # a handful of clusters
+            past = np.vstack([self.book.views_of(cents[c], state), framing(state, cents[c])])
+            if len(past) == 0:
+                continue
+            m = np.flatnonzero(owner == c)
+            u = eyes[m] - cents[c]
+            u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
+            pv = past - cents[c]
+            pv /= np.maximum(np.linalg.norm(pv, axis=1, keepdims=True), 1e-9)
+            out[m] = (u @ pv.T).max(axis=1) >= limit
+        return out
 
     def _search_space(self, grid, frontier: np.ndarray) -> np.ndarray:
         """S_k = ∪ S(f): lattice positions in the shell [min_standoff, search_radius] of any frontier
@@ -80,42 +84,34 @@ class ConstrainedNBV:
     def next_view(self, state: ScanState) -> ViewPlan:
         cfg, grid = self.cfg, state.grid
         t0 = time.perf_counter()
-        # G-NBV's growth watch: a view that found no drawing gives its target up (C-NBV has no cone
-        # tiers to try it again with)
-        fruitless = self._growth.fruitless(state.step, grid)
-        if fruitless is not None:
-            self._given_up.append(fruitless)
-        labels, n = frontier_clusters(grid.frontier(cfg.frontier_reach_voxels), cfg.min_frontier_cluster)
-        ijk = np.argwhere(labels > 0)
-        frontier = grid.centers(ijk)
-        # the same bookkeeping as G-NBV: frontier given up, or looked at often enough, is dropped
-        near = 6 * grid.voxel
-        if n and self._given_up:
-            d, _ = cKDTree(np.asarray(self._given_up)).query(frontier, k=1)
-            keep = d > near
-            ijk, frontier = ijk[keep], frontier[keep]
-        if len(frontier) and self._targets:
-            visits = np.array([len(v) for v in cKDTree(np.asarray(self._targets)).query_ball_point(frontier, near)])
-            keep = visits < cfg.max_target_visits
-            ijk, frontier = ijk[keep], frontier[keep]
+        if self._last is not None and state.step > self._last[0]:
+            # the view taken: the candidate of the last plan nearest to where the camera is now
+            _, eyes, owners = self._last
+            self.book.retarget(owners[int(np.argmin(np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1)))])
+            self._last = None
+        self.book.after_view(state)
+        cl = self.book.clusters(state)
+        keep = cl.usable[cl.lab]
+        ijk, frontier, lab = cl.ijk[keep], cl.centers[keep], cl.lab[keep]
         timings = {"frontier_s": time.perf_counter() - t0}
         empty = np.zeros((0, 4, 4))
         if len(frontier) == 0:
-            return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "frontier", timings=timings)
+            return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "frontier", frontier=cl.centers, timings=timings)
         eyes = self._search_space(grid, frontier[:: max(1, len(frontier) // cfg.cnbv_max_frontier)])
         # each position looks at its nearest frontier cell, within the cone of that cell's surface
         _, near = cKDTree(frontier).query(eyes, k=1)
-        targets = frontier[near]
-        lab = labels[tuple(ijk.T)]
-        normals = np.full((len(frontier), 3), np.nan)
+        targets, owner = frontier[near], lab[near]
+        normals = np.full((len(cl.cents), 3), np.nan)
         for c in np.unique(lab):  # one normal per cluster: a handful of clusters, not points
-            m = lab == c
-            nrm = nbv.outward_normal(state.surface, frontier[m].mean(axis=0))
+            nrm = nbv.outward_normal(state.surface, cl.cents[c])
             if nrm is not None:
-                normals[m] = nrm
-        ok = nbv.feasible_eyes(grid, eyes, targets, normals[near], cfg, None, cfg.relaxed_view_angle_deg)
-        ok &= ~self._repeats(eyes, targets, state, 6 * grid.voxel)
-        eyes, targets = eyes[ok], targets[ok]
+                normals[c] = nrm
+        ok = nbv.feasible_eyes(grid, eyes, targets, normals[owner], cfg, None, cfg.relaxed_view_angle_deg)
+        ok &= ~self._repeats(eyes, owner, cl.cents, state)
+        if len(self._unreachable):
+            d, _ = cKDTree(self._unreachable).query(eyes, k=1, distance_upper_bound=cfg.cnbv_candidate_spacing_m / 4)
+            ok &= ~np.isfinite(d)
+        eyes, targets, owner = eyes[ok], targets[ok], owner[ok]
         timings["candidates_s"] = time.perf_counter() - t0
         if len(eyes) == 0:
             return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "frontier", frontier=frontier, timings=timings)
@@ -132,10 +128,10 @@ class ConstrainedNBV:
         if self._first_gain is None:
             self._first_gain = best
         stop = best < max(cfg.min_gain, cfg.min_gain_fraction * self._first_gain) or q[rank[0]] < cfg.delta_q
-        target = np.tile(targets, (len(self._turns), 1))[rank[0]]
+        looked_at = cl.cents[np.tile(owner, len(self._turns))[rank]]
+        target = looked_at[0]
         if not stop:
-            self._targets.append(target)
-            self._target_steps.append(state.step)
-            self._growth.planned(state.step, target, grid)
+            self.book.planned(state, target)
+            self._last = (state.step, E[rank], looked_at)
         return ViewPlan(poses_from(E[rank], R[rank]), q[rank], gain[rank], bool(stop), "quality" if stop else "",
                         target=target, frontier=frontier, timings=timings)

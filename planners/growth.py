@@ -17,6 +17,11 @@ class GrowthWatch:
     def planned(self, step: int, target: np.ndarray, grid: OccupancyGrid) -> None:
         self._pending = (step, np.asarray(target, dtype=np.float64), int(np.count_nonzero(grid.drawing)))
 
+    def retarget(self, target: np.ndarray) -> None:
+        if self._pending is not None:
+            step, _, before = self._pending
+            self._pending = (step, np.asarray(target, dtype=np.float64), before)
+
     def fruitless(self, step: int, grid: OccupancyGrid) -> np.ndarray | None:
         """The target of the previous step's view if that view grew the drawing by less than the
         threshold. Replans within one step (no view taken yet) never count."""

@@ -207,23 +207,38 @@ def test_sealed_paint_has_seen_surface_all_round_and_a_border_does_not():
     assert not sealed(pts[:1], sparse, 0.012, 0.002)[0]
 
 
-def test_cnbv_gives_up_a_target_whose_view_found_no_drawing():
+def test_cnbv_keeps_targets_as_gnbv_does():
+    """C-NBV books its views per frontier cluster like G-NBV: a view that found no drawing marks its
+    target, a second gives it up; a view direction already taken onto a cluster is not offered
+    again; candidates the runner could not reach are dropped, not the cluster they looked at."""
     from cellctl.scan import make_planner
 
     cfg, state = _state()
     planner = make_planner("cnbv", cfg)
     first = planner.next_view(state)
     assert not first.stop
-    # the view was taken (step 1) and found nothing: the drawing did not grow
-    state.step = 1
-    state.viewpoints = np.vstack([state.viewpoints, first.poses[0][:3, 3]])
-    second = planner.next_view(state)
-    if not second.stop:
-        assert np.linalg.norm(second.target - first.target) > 6 * state.grid.voxel
-    # nor is a view direction taken again onto a target already looked at
-    again = make_planner("cnbv", cfg)
-    p1 = again.next_view(state)
-    state.step = 2
-    state.viewpoints = np.vstack([state.viewpoints, p1.poses[0][:3, 3]])
-    mask = again._repeats(p1.poses[:, :3, 3], np.broadcast_to(p1.target, (len(p1.poses), 3)), state, 0.06)
-    assert mask[0]
+    voxel = state.grid.voxel
+    for step in (1, 2):  # two views there, neither grew the drawing
+        state.step = step
+        state.viewpoints = np.vstack([state.viewpoints, first.poses[0][:3, 3]])
+        state.camera_pose = first.poses[0]
+        plan = planner.next_view(state)
+        if step == 1:
+            assert planner.book.was_fruitless(first.target, voxel)
+            u = plan.poses[:, :3, 3] - first.target
+            u /= np.linalg.norm(u, axis=1, keepdims=True)
+            v = first.poses[0][:3, 3] - first.target
+            v /= np.linalg.norm(v)
+            assert (u @ v).max() < np.cos(np.deg2rad(cfg.nbv.revisit_angle_deg)) + 1e-9  # not from there again
+    assert any(np.linalg.norm(g - first.target) < 6 * voxel for g in planner.book.given_up)
+    assert plan.stop or np.linalg.norm(plan.target - first.target) > 3 * voxel
+
+    fresh = make_planner("cnbv", cfg)
+    _, state = _state()
+    p1 = fresh.next_view(state)
+    p1.tried = 5
+    fresh.reject(p1)
+    p2 = fresh.next_view(state)
+    assert not p2.stop  # the cluster is still there
+    gone = p1.poses[:5, :3, 3]
+    assert np.linalg.norm(p2.poses[:, None, :3, 3] - gone[None], axis=2).min() > 1e-6
