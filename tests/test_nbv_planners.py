@@ -242,3 +242,33 @@ def test_cnbv_keeps_targets_as_gnbv_does():
     assert not p2.stop  # the cluster is still there
     gone = p1.poses[:5, :3, 3]
     assert np.linalg.norm(p2.poses[:, None, :3, 3] - gone[None], axis=2).min() > 1e-6
+
+
+def test_framing_returns_the_views_whose_image_holds_the_target():
+    from planners.targets import framing
+
+    _, state = _state()  # one camera at (0.45, -0.15, 0.45) looking down at (0.45, -0.15, 0.10)
+    seen = framing(state, np.array([0.45, -0.10, 0.10]))
+    assert np.allclose(seen, state.camera_pose[:3, 3]) and len(seen) == 2  # the first view and the latest
+    assert len(framing(state, np.array([0.45, -0.15, 0.60]))) == 0  # behind the camera
+    assert len(framing(state, np.array([1.20, -0.15, 0.10]))) == 0  # outside the image
+
+
+def test_gnbv_closes_a_cluster_whose_paint_is_sealed_all_round():
+    """The stripe of _state() seen with unpainted table all round its frontier cells: the unknown
+    next to them is no way on for the line, so the cluster needs no view."""
+    from planners.targets import TargetBook
+
+    cfg, state = _state()
+    book = TargetBook(cfg)
+    cl = book.clusters(state)
+    assert cl.usable.any()  # the stripe runs out of the view at y = 0: open
+    assert not book._sealed(state, cl.centers, cl.lab, len(cl.cents)).any()  # its end borders the unseen
+    # the table seen further, 5 cm past the stripe's end, all of it unpainted
+    xs, ys = np.meshgrid(np.arange(0.30, 0.60, 0.002), np.arange(0.0, 0.05, 0.002))
+    more = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.10)], 1).astype(np.float32)
+    state.surface = Cloud(np.vstack([state.surface.xyz, more]), np.vstack([state.surface.rgb, np.full(more.shape, 120, np.uint8)]),
+                          np.vstack([state.surface.origin, np.broadcast_to(state.surface.origin[:1], more.shape)]))
+    cl = book.clusters(state)
+    assert book._sealed(state, cl.centers, cl.lab, len(cl.cents)).all()
+    assert not cl.usable.any()
