@@ -51,19 +51,10 @@ class ConstrainedNBV:
         """Mask of candidates that would look at their cluster from (nearly) the direction of a view
         already planned for it, or of a view whose image held it: that view saw what this one would."""
         out = np.zeros(len(eyes), dtype=bool)
-        if self.cfg.revisit_angle_deg <= 0:
-            return out
-        limit = np.cos(np.deg2rad(self.cfg.revisit_angle_deg))
         for c in np.unique(owner):  # a handful of clusters
-            past = np.vstack([self.book.views_of(cents[c], state), framing(state, cents[c])])
-            if len(past) == 0:
-                continue
             m = np.flatnonzero(owner == c)
-            u = eyes[m] - cents[c]
-            u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
-            pv = past - cents[c]
-            pv /= np.maximum(np.linalg.norm(pv, axis=1, keepdims=True), 1e-9)
-            out[m] = (u @ pv.T).max(axis=1) >= limit
+            past = np.vstack([self.book.views_of(cents[c], state), framing(state, cents[c])])
+            out[m] = nbv.repeats(eyes[m], np.broadcast_to(cents[c], (len(m), 3)), past, self.cfg.revisit_angle_deg)
         return out
 
     def _search_space(self, grid, frontier: np.ndarray) -> np.ndarray:

@@ -101,7 +101,8 @@ class NBVConfig(_Strict):
                                         "tier, a second one gives it up (0: never)")
     end_check_m: float = Field(0.03, ge=0, le=0.2, description="G-NBV: a frontier cluster at a tip of the drawing is "
                                "closed when this much surface past the tip was seen unpainted (0: never)")
-    end_width_m: float = Field(0.012, gt=0, le=0.1, description="half-width of that tube past the tip")
+    end_width_m: float = Field(0.012, gt=0, le=0.1, description="half-width of that tube past the tip; also the radius "
+                               "within which paint must have seen surface all round to be sealed")
     end_radius_m: float = Field(0.05, gt=0.005, le=0.3, description="drawing within this of the cluster gives its direction")
     end_min_points: int = Field(40, ge=1, le=100_000, description="surface points (2 mm apart) that tube must hold")
     facing_gain: bool = Field(True, description="each cell a ray meets counts by the cosine at which the ray meets "

@@ -19,18 +19,6 @@ from scipy.spatial import cKDTree
 from planners.config import NBVConfig
 
 
-def _local_axes(drawing: np.ndarray, center: np.ndarray, cfg: NBVConfig):
-    """The drawing within `end_radius_m` of the centre, its mean and principal axes, or None when
-    there are too few points."""
-    r = cfg.end_radius_m
-    local = drawing[np.sum((drawing - center) ** 2, axis=1) < r * r]
-    if len(local) < 10:
-        return None
-    mean = local.mean(axis=0)
-    _, _, vt = np.linalg.svd(local - mean, full_matrices=False)
-    return local, mean, vt
-
-
 def sealed(points: np.ndarray, surface: cKDTree, radius: float, surface_voxel: float, k: int = 160) -> np.ndarray:
     """Per drawing point: is it surrounded by observed surface (painted or not) within `radius`?
     The disc round a point inside the seen surface is full: its neighbours' centroid is the point
@@ -53,10 +41,12 @@ def ended(drawing: np.ndarray, surface: np.ndarray, center: np.ndarray, cfg: NBV
     `end_min_points` unpainted surface points and no drawing point lie in a tube `end_check_m` long."""
     if cfg.end_check_m <= 0 or len(drawing) < 10:
         return False
-    axes = _local_axes(drawing, center, cfg)
-    if axes is None:
+    r = cfg.end_radius_m
+    local = drawing[np.sum((drawing - center) ** 2, axis=1) < r * r]
+    if len(local) < 10:
         return False
-    local, mean, vt = axes
+    mean = local.mean(axis=0)
+    _, _, vt = np.linalg.svd(local - mean, full_matrices=False)
     d = vt[0]
     if np.dot(center - mean, d) < 0:
         d = -d

@@ -175,12 +175,8 @@ def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, nor
         behind = np.zeros(len(eyes), dtype=bool)
         behind[inside] = grid.shadow[tuple(ijk[inside].T)] & grid.unknown[tuple(ijk[inside].T)]
         ok &= ~behind
-    if past_views is not None and len(past_views) and cfg.revisit_angle_deg > 0:
-        u = eyes - targets
-        u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
-        pv = past_views[None, :, :] - targets[:, None, :]
-        pv /= np.maximum(np.linalg.norm(pv, axis=2, keepdims=True), 1e-9)
-        ok &= np.einsum("mj,mpj->mp", u, pv).max(axis=1) < np.cos(np.deg2rad(cfg.revisit_angle_deg))
+    if past_views is not None:
+        ok &= ~repeats(eyes, targets, past_views, cfg.revisit_angle_deg)
     occupied = occupied or OccupiedIndex(grid)
     if occupied.tree is not None and ok.any() and margin > 0:
         d, _ = occupied.tree.query(eyes[ok], k=1, distance_upper_bound=margin)
@@ -196,6 +192,18 @@ def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, nor
                                            grid.voxel, np.asarray(grid.shape, dtype=np.int64), occupied.flat)
         ok[idx[blocked]] = False
     return ok
+
+
+def repeats(eyes: np.ndarray, targets: np.ndarray, past_views: np.ndarray, angle_deg: float) -> np.ndarray:
+    """Mask of eyes that see their target (one row per eye) from within `angle_deg` of the direction
+    of a past view (P, 3) onto it: that view saw what they would. None with no past view or angle 0."""
+    if len(past_views) == 0 or angle_deg <= 0:
+        return np.zeros(len(eyes), dtype=bool)
+    u = eyes - targets
+    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
+    pv = past_views[None, :, :] - targets[:, None, :]
+    pv /= np.maximum(np.linalg.norm(pv, axis=2, keepdims=True), 1e-9)
+    return np.einsum("mj,mpj->mp", u, pv).max(axis=1) >= np.cos(np.deg2rad(angle_deg))
 
 
 def outward_normal(surface: Cloud, target: np.ndarray, radius: float = 0.03) -> np.ndarray | None:

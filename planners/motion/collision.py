@@ -472,12 +472,12 @@ class RobotCollisionModel:
         hi = np.stack([p.vertices.max(0) for p in parts])
         self._centre = (lo + hi) / 2
         self._radius = np.array([np.linalg.norm(p.vertices - c, axis=1).max() for p, c in zip(parts, self._centre)])
-        self._planes = [_face_planes(p.vertices, p.faces) for p in parts]  # for on_robot
-        # the same planes packed for the compiled filter: all parts' normals and offsets, part k's at
-        # rows _plane_start[k]:_plane_start[k + 1]
-        self._plane_n = np.ascontiguousarray(np.concatenate([n for n, _ in self._planes]), dtype=np.float64)
-        self._plane_d = np.ascontiguousarray(np.concatenate([d for _, d in self._planes]), dtype=np.float64)
-        self._plane_start = np.concatenate([[0], np.cumsum([len(d) for _, d in self._planes])]).astype(np.int64)
+        # for on_robot: every part's hull face planes packed for the compiled filter, part k's normals
+        # and offsets at rows _plane_start[k]:_plane_start[k + 1]
+        planes = [_face_planes(p.vertices, p.faces) for p in parts]
+        self._plane_n = np.ascontiguousarray(np.concatenate([n for n, _ in planes]), dtype=np.float64)
+        self._plane_d = np.ascontiguousarray(np.concatenate([d for _, d in planes]), dtype=np.float64)
+        self._plane_start = np.concatenate([[0], np.cumsum([len(d) for _, d in planes])]).astype(np.int64)
 
         if home_q is None:
             home_q = (kin.lower + kin.upper) / 2
