@@ -32,6 +32,7 @@ from planners.motion import collision
 from planners.motion.collision import CollisionChecker, RobotCollisionModel
 from planners.motion.ik import Unreachable
 from planners.motion.kinematics import Kinematics
+from planners.motion.reach_map import reach_map_for
 from planners.motion.view_motion import ViewMotionPlanner
 from planners.views import look_at_rotations, poses_from
 
@@ -135,6 +136,7 @@ class ScanJob:
         self.planner = make_planner(planner_name, pcfg)
         m = arm.model
         self.kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
+        self.reach = reach_map_for(self.kin)  # which candidate views the arm can take at all
         # the torch rides on the hand through the scan too: its moves keep it clear like any link
         self.robot = RobotCollisionModel.from_arm_model(m, mcfg.collision, torch=torch_shape(pcfg.cutpath))
         self.checker = CollisionChecker(self.robot, mcfg.collision) if mcfg.check_collisions else None
@@ -415,7 +417,7 @@ class ScanJob:
             if len(cloud) == 0 and last_plan is not None:
                 self.planner.reject(last_plan)  # that view saw nothing: do not aim there again
             state = ScanState(k, self.grid, self.surface, self.drawing, cloud, T, initial_pose, self.K, self.image_size,
-                              np.array(res.viewpoints + [T[:3, 3].tolist()]))
+                              np.array(res.viewpoints + [T[:3, 3].tolist()]), self.reach.reachable)
             plan = self.planner.next_view(state)
             t2 = time.perf_counter()
             rec = StepRecord(k, T[:3, 3].round(4).tolist(), len(self.surface), len(self.drawing), len(plan.frontier),

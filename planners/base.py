@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -23,6 +23,9 @@ class ScanState:
     K: np.ndarray  # 3x3 intrinsics of the camera image
     image_size: tuple[int, int]  # (width, height)
     viewpoints: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # camera positions so far
+    # (positions (M,3), optical axes (M,3)) -> (M,) bool, False where the arm surely cannot take
+    # the view (planners.motion.reach_map); None: every candidate is offered to the runner
+    reachable: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
 
 
 @dataclass
@@ -31,7 +34,7 @@ class ViewPlan:
     quality: np.ndarray  # (M,) Q of eq. 4, same order
     gain: np.ndarray  # (M,) raw gain of eq. 5
     stop: bool
-    reason: str = ""  # "quality" | "frontier" | "" (continue)
+    reason: str = ""  # "quality" | "frontier" | "unreachable" | "" (continue)
     target: np.ndarray | None = None  # the point the views look at (f̂ for G-NBV)
     frontier: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # frontier cell centres
     timings: dict[str, float] = field(default_factory=dict)

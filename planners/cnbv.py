@@ -38,14 +38,24 @@ class ConstrainedNBV:
         self._first_gain: float | None = None
         self._unreachable = np.zeros((0, 3))  # candidate positions the runner could not reach
         self._last: tuple | None = None  # (step, ranked candidate positions, the centroid each looks at)
+        self._failed: dict[tuple, int] = {}  # cluster centroid -> plans on it the runner could not reach
 
     def reject(self, plan: ViewPlan) -> None:
         """The runner reached none of the candidates it tried: those positions are dropped from now on
         (the lattice is fixed, so they come back exactly), not the cluster they looked at; its other
         candidates may be reachable. A cluster with no candidate left is left by itself."""
-        tried = plan.poses[:max(plan.tried, 1), :3, 3]
+        k = max(plan.tried, 1)
+        tried = plan.poses[:k, :3, 3]
         if len(tried):
             self._unreachable = np.vstack([self._unreachable, tried])
+        if self._last is not None:
+            # A cluster whose candidates failed in two plans is given up, as G-NBV gives up a target
+            # at once: what is left of it is seen only from where the arm does not go.
+            for c in np.unique(self._last[2][:k], axis=0):
+                key = tuple(np.round(c, 4))
+                self._failed[key] = self._failed.get(key, 0) + 1
+                if self._failed[key] >= 2:
+                    self.book.give_up(c)
 
     def _repeats(self, eyes: np.ndarray, owner: np.ndarray, cents: np.ndarray, state: ScanState) -> np.ndarray:
         """Mask of candidates that would look at their cluster from (nearly) the direction of a view
@@ -109,6 +119,14 @@ class ConstrainedNBV:
         base = look_at_rotations(eyes, targets)
         R = np.concatenate([_turn(base, y, p) for y, p in self._turns])
         E = np.tile(eyes, (len(self._turns), 1))
+        if state.reachable is not None and cfg.reach_prefilter:
+            keep = state.reachable(E, R[:, :, 2])
+            E, R = E[keep], R[keep]
+            owner_of = np.tile(owner, len(self._turns))[keep]
+        else:
+            owner_of = np.tile(owner, len(self._turns))
+        if len(E) == 0:
+            return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "unreachable", frontier=frontier, timings=timings)
         weights = nbv.cell_weights(grid, ijk, cfg)
         cost = np.linalg.norm(E - state.camera_pose[:3, 3], axis=1)
         gain = nbv.gains(grid, E, R, weights, nbv.visibility_field(grid, cfg), state.K, state.image_size, cfg, cost)
@@ -119,7 +137,7 @@ class ConstrainedNBV:
         if self._first_gain is None:
             self._first_gain = best
         stop = best < max(cfg.min_gain, cfg.min_gain_fraction * self._first_gain) or q[rank[0]] < cfg.delta_q
-        looked_at = cl.cents[np.tile(owner, len(self._turns))[rank]]
+        looked_at = cl.cents[owner_of[rank]]
         target = looked_at[0]
         if not stop:
             self.book.planned(state, target)

@@ -109,6 +109,8 @@ class NBVConfig(_Strict):
                               "the surface the map says may be there (it faces observed free space); 0 from behind. "
                               "False: eq. 5 as the paper")
     max_target_visits: int = Field(3, ge=1, le=20, description="give up a frontier cluster after this many views at it")
+    reach_prefilter: bool = Field(True, description="drop candidates the arm's capability map calls unreachable "
+                                  "before scoring (planners.motion.reach_map), when the runner provides one")
     ik_candidates: int = Field(40, ge=1, le=10_000, description="ranked candidates the runner tries to reach")
 
     @model_validator(mode="after")

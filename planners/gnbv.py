@@ -53,6 +53,11 @@ class GuidedNBV:
         if len(eyes) == 0:
             return None
         R = look_at_rotations(eyes, self._aim_point(state, target))
+        if state.reachable is not None and cfg.reach_prefilter:
+            keep = state.reachable(eyes, R[:, :, 2])
+            eyes, R = eyes[keep], R[keep]
+            if len(eyes) == 0:
+                return None
         cost = np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1)
         gain = nbv.gains(grid, eyes, R, weights, p_free, state.K, state.image_size, cfg, cost)
         q = nbv.quality(gain, cost, cfg.lam)

@@ -43,6 +43,11 @@ class TargetBook:
         self.given_up.append(np.asarray(target, dtype=np.float64))
 
     def planned(self, state: ScanState, target: np.ndarray) -> None:
+        """Book the plan's target. A replan within the same step (the runner reached none of the
+        previous plan's candidates) supersedes the previous booking: only a view taken is a visit."""
+        if self.target_steps and self.target_steps[-1] == state.step:
+            self.targets.pop()
+            self.target_steps.pop()
         self.targets.append(np.asarray(target, dtype=np.float64))
         self.target_steps.append(state.step)
         self._growth.planned(state.step, target, state.grid)

@@ -324,3 +324,35 @@ def test_the_compiled_axis_ik_reaches_its_targets_and_agrees_with_the_full_pose_
     # the full-pose (numpy) solve from the same seeds, asked for the roll the free solve found
     Qf, okf = solve_axis_ik_batch(kin, T[ok, :3, 3], T[ok, :3, 2], Q[ok], max_iter=5, x_axes=Tq[:, :3, 0])
     assert okf.all() and np.abs(Qf - Q[ok]).max() < 1e-3
+
+
+def test_reach_map_never_drops_a_pose_ik_reaches():
+    """The capability map is a prefilter: over random camera poses in the cell it must keep every
+    one IK solves (with the runner's margin), and it must drop a good share of those it cannot."""
+    from planners.motion.reach_map import reach_map_for
+
+    kin = Kinematics(URDF, PANDA_JOINT_NAMES, FLANGE, hand_eye(), lower=PANDA_Q_MIN, upper=PANDA_Q_MAX)
+    rmap = reach_map_for(kin)
+    assert reach_map_for(kin) is rmap  # built once per arm
+    rng = np.random.default_rng(7)
+    n = 300
+    pos = np.column_stack([rng.uniform(0.0, 0.95, n), rng.uniform(-0.6, 0.6, n), rng.uniform(0.1, 0.8, n)])
+    axis = rng.normal(size=(n, 3))
+    axis[:, 2] = -np.abs(axis[:, 2])  # looking down or level, as scan views do
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    kept = rmap.reachable(pos, axis)
+    reached = np.zeros(n, dtype=bool)
+    for k in range(n):  # the reference: one IK solve per pose
+        x = np.cross(axis[k], [0.0, 0.0, 1.0])
+        x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([1.0, 0.0, 0.0])
+        T = np.eye(4)
+        T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(axis[k], x), axis[k], pos[k]
+        try:
+            solve_camera_ik(kin, T, PANDA_Q_READY, free_roll=True, margin=MARGIN, seeds=6)
+            reached[k] = True
+        except Unreachable:
+            pass
+    assert 0 < reached.sum() < n
+    assert not (reached & ~kept).any(), "the map dropped a pose IK reaches"
+    assert (~reached & ~kept).sum() >= 0.3 * (~reached).sum()
+    assert rmap.reachable(np.array([[5.0, 0.0, 0.5]]), np.array([[0.0, 0.0, -1.0]])).tolist() == [False]

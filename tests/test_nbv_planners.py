@@ -272,3 +272,40 @@ def test_gnbv_closes_a_cluster_whose_paint_is_sealed_all_round():
     cl = book.clusters(state)
     assert book._sealed(state, cl.centers, cl.lab, len(cl.cents)).all()
     assert not cl.usable.any()
+
+
+def test_a_replan_within_a_step_is_not_a_visit():
+    """The runner reached none of a plan's candidates and asked again in the same step: the first
+    booking is superseded, so a cluster is not closed as 'visited too often' by failed moves alone
+    and the next view is booked on the target it was taken for."""
+    from planners.targets import TargetBook
+
+    cfg, state = _state()
+    book = TargetBook(cfg)
+    a, b = np.array([0.45, -0.05, 0.10]), np.array([0.40, -0.02, 0.10])
+    for _ in range(cfg.nbv.max_target_visits + 1):
+        book.planned(state, a)
+    assert len(book.targets) == 1 and book.clusters(state).usable.any()
+    book.planned(state, b)
+    assert np.allclose(book.targets, [b]) and book.target_steps == [state.step]
+    state.step += 1
+    book.planned(state, a)
+    assert len(book.targets) == 2
+
+
+def test_planners_offer_only_views_the_reach_map_allows():
+    """With a reachability test in the state, G-NBV and C-NBV rank only the candidates it allows (the
+    runner's IK is not spent on views the arm cannot take); without one they offer more."""
+    from cellctl.scan import make_planner
+
+    def west_only(positions, axes):  # a stand-in arm that reaches only x < 0.45
+        return positions[:, 0] < 0.45
+
+    for name in ("gnbv", "cnbv"):
+        cfg, state = _state()
+        free = make_planner(name, cfg).next_view(state)
+        state.reachable = west_only
+        held = make_planner(name, cfg).next_view(state)
+        assert not free.stop and not held.stop
+        assert (free.poses[:, 0, 3] >= 0.45).any()
+        assert len(held.poses) and (held.poses[:, 0, 3] < 0.45).all()
