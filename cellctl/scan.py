@@ -157,8 +157,10 @@ class ScanJob:
         clouds.warmup()
         collision.warmup()
         self.grid = OccupancyGrid(pcfg.grid)
-        self.surface = Cloud.empty()
-        self.drawing = Cloud.empty()
+        self._surface_total = clouds.CloudTotal(pcfg.grid.surface_voxel_m)
+        self._drawing_total = clouds.CloudTotal(pcfg.grid.surface_voxel_m)
+        self.surface = self._surface_total.cloud
+        self.drawing = self._drawing_total.cloud
         self.empty_frames = 0
         self.frames_without_depth = 0  # captures with no valid depth pixel since the last view that had one
         self.last_stamp: float | None = None  # timestamp of the last frame accepted or refused as empty
@@ -318,7 +320,10 @@ class ScanJob:
         """ProcessClouds of §IV-B plus the grid update. Returns on the arm itself (at joints q) are
         dropped first: the arm must not become an obstacle to itself."""
         g = self.pcfg.grid
-        cloud = self._off_robot(clouds.frame_to_base_cloud(frame.color, frame.depth, self.K, T_base_cam), q)
+        cloud, pixels = clouds.frame_to_base_cloud(frame.color, frame.depth, self.K, T_base_cam, pixels=True)
+        keep = self._off_robot(cloud, q)
+        if keep is not None:
+            cloud, pixels = cloud.select(keep), pixels[keep]
         if len(cloud) == 0:
             # A view of nothing (everything nearer than the sensor's minimum range, or empty space)
             # teaches nothing but is not a fault; several in a row are.
@@ -330,23 +335,24 @@ class ScanJob:
             return cloud
         self.empty_frames = 0
         self.frames_without_depth = 0
-        self.surface = clouds.concatenate(self.surface, cloud, g.surface_voxel_m)
+        self.surface = self._surface_total.add(cloud)
         c = self.pcfg.color
         paint = clouds.color_mask(cloud.rgb, c.hue_center_deg, c.hue_halfwidth_deg, c.s_min, c.v_min)
-        self.drawing = clouds.concatenate(self.drawing, cloud.select(paint), g.surface_voxel_m)
-        rays = self._off_robot(clouds.frame_to_base_cloud(frame.color, frame.depth, self.K, T_base_cam,
-                                                          stride=g.integrate_stride_px), q)
+        self.drawing = self._drawing_total.add(cloud.select(paint))
+        # the rays that carve free space: every integrate_stride_px-th pixel of the same filtered frame
+        rays = cloud.select(clouds.on_stride(pixels, frame.depth.shape[1], g.integrate_stride_px))
         self.grid.integrate(T_base_cam[:3, 3], rays.xyz)
         self.grid.set_drawing(self.drawing.xyz)
         self._scene_stale = True
         return cloud
 
-    def _off_robot(self, cloud: Cloud, q: np.ndarray) -> Cloud:
+    def _off_robot(self, cloud: Cloud, q: np.ndarray) -> np.ndarray | None:
+        """Mask of the points not on the arm at joints q, or None when all are kept."""
         if self.mcfg.self_filter_pad_m <= 0 or len(cloud) == 0:
-            return cloud
+            return None
         on = self.robot.on_robot(cloud.xyz, q, self.mcfg.self_filter_pad_m)
         self.self_filtered += int(on.sum())
-        return cloud.select(~on) if on.any() else cloud
+        return ~on if on.any() else None
 
     # --- cancellation ---------------------------------------------------------------------------
     def cancelled(self) -> bool:

@@ -56,14 +56,23 @@ def transform_points(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 
 def frame_to_base_cloud(color: np.ndarray, depth: np.ndarray, K: np.ndarray, T_base_cam: np.ndarray,
-                        stride: int = 1) -> Cloud:
-    """The paper's ^bT_k ^cC_k: one frame's coloured cloud in the base frame."""
+                        stride: int = 1, pixels: bool = False):
+    """The paper's ^bT_k ^cC_k: one frame's coloured cloud in the base frame; with `pixels`, also
+    the flat pixel index of each point, so a sparser set of the same frame's rays is a selection
+    (`on_stride`), not a second back-projection."""
     if not np.all(np.isfinite(T_base_cam)):
         raise ValueError("camera pose contains NaN/inf")
     pts, idx = depth_to_camera_points(depth, K, stride)
     rgb = color.reshape(-1, 3)[idx]
     origin = np.broadcast_to(T_base_cam[:3, 3].astype(np.float32), pts.shape)
-    return Cloud(transform_points(T_base_cam, pts), rgb, origin)
+    cloud = Cloud(transform_points(T_base_cam, pts), rgb, origin)
+    return (cloud, idx) if pixels else cloud
+
+
+def on_stride(pixels: np.ndarray, width: int, stride: int) -> np.ndarray:
+    """Mask of the points whose pixel lies on every `stride`-th row and column: the points
+    `frame_to_base_cloud(..., stride)` would return."""
+    return ((pixels // width) % stride == 0) & ((pixels % width) % stride == 0)
 
 
 def voxel_keys(xyz: np.ndarray, voxel: float) -> np.ndarray:
@@ -85,6 +94,34 @@ def concatenate(total: Cloud, new: Cloud, voxel: float) -> Cloud:
     merged = Cloud(np.concatenate([total.xyz, new.xyz]), np.concatenate([total.rgb, new.rgb]),
                    np.concatenate([total.origin, new.origin]))
     return voxel_dedup(merged, voxel)
+
+
+class CloudTotal:
+    """C_total (or D_total) of eq. 1 kept with its voxel keys sorted: adding a view sorts only the
+    view's points and looks them up in the total, instead of re-sorting the whole accumulated cloud
+    every step (it grows to most of a million points). Same points, same order as `concatenate`."""
+
+    def __init__(self, voxel: float):
+        self.voxel = float(voxel)
+        self.cloud = Cloud.empty()
+        self._keys = np.zeros(0, dtype=np.int64)  # sorted, one per voxel of `cloud`
+
+    def add(self, new: Cloud) -> Cloud:
+        """C_total ∪ new, voxel de-duplicated (old points win, then the first new one per voxel)."""
+        if len(new) == 0:
+            return self.cloud
+        keys, first = np.unique(voxel_keys(new.xyz, self.voxel), return_index=True)
+        at = np.searchsorted(self._keys, keys)
+        known = np.zeros(len(keys), dtype=bool)
+        inside = at < len(self._keys)
+        known[inside] = self._keys[at[inside]] == keys[inside]
+        fresh = ~known
+        self._keys = np.insert(self._keys, at[fresh], keys[fresh])
+        add = new.select(np.sort(first[fresh]))
+        c = self.cloud
+        self.cloud = Cloud(np.concatenate([c.xyz, add.xyz]), np.concatenate([c.rgb, add.rgb]),
+                           np.concatenate([c.origin, add.origin]))
+        return self.cloud
 
 
 def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
