@@ -109,8 +109,11 @@ class ConstrainedNBV:
                 normals[c] = nrm
         ok = nbv.feasible_eyes(grid, eyes, targets, normals[owner], cfg, None, cfg.relaxed_view_angle_deg)
         ok &= ~self._repeats(eyes, owner, cl.cents, state)
-        if len(self._unreachable):
-            d, _ = cKDTree(self._unreachable).query(eyes, k=1, distance_upper_bound=cfg.cnbv_candidate_spacing_m / 4)
+        # Positions the runner could not reach, and those the camera already looked from: C-NBV's turns
+        # of at most a few tens of degrees there would frame much of what that view saw.
+        done = np.vstack([self._unreachable, state.viewpoints])
+        if len(done):
+            d, _ = cKDTree(done).query(eyes, k=1, distance_upper_bound=cfg.cnbv_candidate_spacing_m / 4)
             ok &= ~np.isfinite(d)
         eyes, targets, owner = eyes[ok], targets[ok], owner[ok]
         timings["candidates_s"] = time.perf_counter() - t0

@@ -309,3 +309,17 @@ def test_planners_offer_only_views_the_reach_map_allows():
         assert not free.stop and not held.stop
         assert (free.poses[:, 0, 3] >= 0.45).any()
         assert len(held.poses) and (held.poses[:, 0, 3] < 0.45).all()
+
+
+def test_cnbv_does_not_return_to_a_place_it_looked_from():
+    """C-NBV turns its candidates by a few tens of degrees at most: from a position the camera
+    already took, such a view frames much of what that view saw, so no candidate is offered there."""
+    from cellctl.scan import make_planner
+
+    cfg, state = _state()
+    first = make_planner("cnbv", cfg).next_view(state)
+    best = first.poses[0][:3, 3]
+    state.viewpoints = np.vstack([state.viewpoints, best])
+    again = make_planner("cnbv", cfg).next_view(state)
+    assert not again.stop
+    assert np.linalg.norm(again.poses[:, :3, 3] - best, axis=1).min() > cfg.nbv.cnbv_candidate_spacing_m / 4
