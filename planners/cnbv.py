@@ -122,12 +122,10 @@ class ConstrainedNBV:
         base = look_at_rotations(eyes, targets)
         R = np.concatenate([_turn(base, y, p) for y, p in self._turns])
         E = np.tile(eyes, (len(self._turns), 1))
+        owner_of = np.tile(owner, len(self._turns))
         if state.reachable is not None and cfg.reach_prefilter:
             keep = state.reachable(E, R[:, :, 2])
-            E, R = E[keep], R[keep]
-            owner_of = np.tile(owner, len(self._turns))[keep]
-        else:
-            owner_of = np.tile(owner, len(self._turns))
+            E, R, owner_of = E[keep], R[keep], owner_of[keep]
         if len(E) == 0:
             return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "unreachable", frontier=frontier, timings=timings)
         weights = nbv.cell_weights(grid, ijk, cfg)

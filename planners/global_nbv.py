@@ -11,14 +11,7 @@ import numpy as np
 from planners import nbv
 from planners.base import ScanState, ViewPlan
 from planners.config import PlannersConfig
-from planners.views import look_at_rotations, poses_from
-
-
-def fibonacci_sphere(n: int) -> np.ndarray:
-    i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    theta = np.pi * (1 + 5 ** 0.5) * i
-    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
+from planners.views import fibonacci_sphere, look_at_rotations, poses_from
 
 
 class GlobalNBV:

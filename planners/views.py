@@ -41,6 +41,14 @@ def ray_bundle(K: np.ndarray, image_size: tuple[int, int], n_w: int, n_h: int) -
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """(n, 3) unit vectors spread evenly over the sphere (golden-angle spiral)."""
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    theta = np.pi * (1 + 5 ** 0.5) * i
+    return np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
+
+
 def sphere_lattice(radius: float, inner: float, spacing: float) -> np.ndarray:
     """Offsets of a cubic lattice inside a spherical shell: the candidate search primitive S(f)."""
     n = int(np.ceil(radius / spacing))

@@ -17,13 +17,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from planners.motion.kinematics import Kinematics
-
-
-def _fibonacci_sphere(n: int) -> np.ndarray:
-    i = np.arange(n) + 0.5
-    polar = np.arccos(1.0 - 2.0 * i / n)
-    azimuth = np.pi * (1.0 + 5.0 ** 0.5) * i
-    return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], axis=1)
+from planners.views import fibonacci_sphere
 
 
 class ReachMap:
@@ -36,7 +30,7 @@ class ReachMap:
             raise ValueError(f"ReachMap: cell_m {cell_m}, samples {samples}, directions {directions}, "
                              f"cone_deg {cone_deg} out of range")
         self.cell = float(cell_m)
-        self._dirs = cKDTree(_fibonacci_sphere(directions))
+        self._dirs = cKDTree(fibonacci_sphere(directions))
         rng = np.random.default_rng(seed)
         lo, hi = kin.lower + margin_rad, kin.upper - margin_rad  # the runner's IK keeps this margin too
         T = kin.fk_batch(lo + (hi - lo) * rng.random((samples, kin.dof)))
