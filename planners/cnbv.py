@@ -137,7 +137,7 @@ class ConstrainedNBV:
         best = float(gain.max())
         if self._first_gain is None:
             self._first_gain = best
-        stop = best < max(cfg.min_gain, cfg.min_gain_fraction * self._first_gain) or q[rank[0]] < cfg.delta_q
+        stop = best < max(cfg.min_gain, cfg.cnbv_min_gain_fraction * self._first_gain) or q[rank[0]] < cfg.delta_q
         looked_at = cl.cents[owner_of[rank]]
         target = looked_at[0]
         if not stop:

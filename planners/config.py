@@ -60,9 +60,14 @@ class NBVConfig(_Strict):
     phi_length_m: float = Field(0.10, gt=0, le=1.0,
                                 description="unit in which dist_F of eq. 7 is measured (the paper leaves it unstated)")
     delta_q: float = Field(0.0, description="δ_Q of eq. 9 on the normalized quality")
-    min_gain: float = Field(0.5, ge=0, description="a target whose best raw gain (nats) is below this is given up")
+    min_gain: float = Field(0.82, ge=0, description="a target whose best raw gain (nats) is below this is given up: "
+                            "with only unknown cells counting, 0.82 is three unknown cells' h(g) (0.27 nats each), "
+                            "the growth a view must show to count (min_view_growth_voxels)")
     min_gain_fraction: float = Field(0.2, ge=0, lt=1,
-                                     description="... or below this share of the first step's best gain")
+                                     description="G-NBV: ... or below this share of the first step's best gain")
+    cnbv_min_gain_fraction: float = Field(0.0, ge=0, lt=1, description="C-NBV: the same share; 0: only min_gain. "
+                                          "C-NBV's first gain is the best over the whole frontier, so a share of it "
+                                          "ended scans while parts of the drawing were still unseen")
     search_radius_m: float = Field(0.55, gt=0.05, le=1.5, description="outer radius of the candidate sphere")
     min_standoff_m: float = Field(0.25, ge=0.1, le=1.0, description="inner radius: the D435 needs distance")
     candidate_spacing_m: float = Field(0.05, ge=0.005, le=0.3)
@@ -71,8 +76,10 @@ class NBVConfig(_Strict):
                                           description="the cone tried when no square-on view gains anything")
     min_camera_z_m: float = Field(0.12, description="candidates below this height are not generated")
     clearance_m: float = Field(0.12, ge=0, le=0.5, description="candidates this close to occupied cells are dropped")
-    unknown_visibility: float = Field(0.95, gt=0, le=1,
-                                      description="P[o=0] in eq. 8 of an unknown cell no ray has ended before")
+    unknown_visibility: float = Field(0.99, gt=0, le=1,
+                                      description="P[o=0] in eq. 8 of an unknown cell no ray has ended before: "
+                                      "most unknown space round a piece is air, and a view into new ground looks through "
+                                      "it (at 0.95 per 1 cm cell 30 cm of it hid all, so views stayed where the map was known)")
     shadow_visibility: float = Field(0.5, gt=0, le=1,
                                      description="P[o=0] in eq. 8 of an unknown cell behind an observed surface (paper: 0.5)")
     rays_w: int = Field(48, ge=4, le=400)
@@ -92,6 +99,9 @@ class NBVConfig(_Strict):
     global_view_directions: int = Field(120, ge=8, le=5000, description="global: candidates on the view sphere")
     global_standoff_m: float = Field(0.35, gt=0.1, le=2, description="global: sphere radius beyond the object")
     global_margin_m: float = Field(0.1, ge=0, le=1, description="global: unknown cells this far around the object count")
+    global_unknown_visibility: float = Field(0.95, gt=0, le=1, description="global: unknown_visibility of its "
+                                             "gain; it scores every unknown cell round the piece, the solid's inside too, "
+                                             "and a more transparent unknown would draw it to look into the inside")
     global_stop_fraction: float = Field(0.03, gt=0, lt=1, description="global: stop when the best gain falls below this share of the first")
     floor_z_m: float = Field(0.02, description="global: occupied cells below this height are the floor")
     revisit_angle_deg: float = Field(25.0, ge=0, le=90,
@@ -105,6 +115,8 @@ class NBVConfig(_Strict):
                                "within which paint must have seen surface all round to be sealed")
     end_radius_m: float = Field(0.05, gt=0.005, le=0.3, description="drawing within this of the cluster gives its direction")
     end_min_points: int = Field(40, ge=1, le=100_000, description="surface points (2 mm apart) that tube must hold")
+    observed_known: bool = Field(True, description="a cell observed occupied or free carries no information "
+                                 "about the drawing (its colour was seen with it): only unknown cells count in eq. 5")
     facing_gain: bool = Field(True, description="each cell a ray meets counts by the cosine at which the ray meets "
                               "the surface the map says may be there (it faces observed free space); 0 from behind. "
                               "False: eq. 5 as the paper")

@@ -57,7 +57,7 @@ class GlobalNBV:
                             timings={"plan_s": time.perf_counter() - t0})
         R = look_at_rotations(eyes, center)
         cost = np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1)
-        gain = nbv.gains(grid, eyes, R, weights, nbv.visibility_field(grid, cfg), state.K,
+        gain = nbv.gains(grid, eyes, R, weights, nbv.visibility_field(grid, cfg, cfg.global_unknown_visibility), state.K,
                          state.image_size, cfg, cost)
         q = nbv.quality(gain, cost, cfg.lam)
         rank = np.argsort(-q, kind="stable")

@@ -59,9 +59,15 @@ class CellWeights:
 
 def cell_weights(grid: OccupancyGrid, frontier_ijk: np.ndarray, cfg: NBVConfig) -> CellWeights:
     """h(g)·p_φ(g) on the box round the frontier where p_φ is not negligible, with the surface
-    normals of `facing_normals` when cfg.facing_gain."""
+    normals of `facing_normals` when cfg.facing_gain. With cfg.observed_known only unknown cells
+    weigh: a cell already hit had its colour seen (paint or not) and a free one holds no paint, so
+    seeing either again tells nothing about the drawing (eq. 6 would still count their occupancy
+    entropy, which drew views back to the surfaces already seen)."""
     phi, box = feature_probability(grid, frontier_ijk, cfg)
-    return CellWeights.on_box(grid, box, entropy_decrease(grid, box) * phi, cfg.facing_gain)
+    w = entropy_decrease(grid, box) * phi
+    if cfg.observed_known:
+        w[grid.logodds[box] != 0] = 0.0
+    return CellWeights.on_box(grid, box, w, cfg.facing_gain)
 
 
 def facing_normals(grid: OccupancyGrid, box: tuple) -> np.ndarray:
@@ -88,15 +94,15 @@ def _entropy_decrease(L: np.ndarray, l_hit: float, l_miss: float, l_min: float, 
     return np.maximum(h, 0.0).astype(np.float32)
 
 
-def visibility_field(grid: OccupancyGrid, cfg: NBVConfig) -> np.ndarray:
+def visibility_field(grid: OccupancyGrid, cfg: NBVConfig, unknown_visibility: float | None = None) -> np.ndarray:
     """P[o_r = 0] per cell for eq. 8, flat: 1 for free cells, 1 - p for occupied ones, a prior for
-    unknown ones (lower behind observed surfaces)."""
+    unknown ones (`unknown_visibility`, default cfg's; lower behind observed surfaces)."""
     p_free = (1.0 / (1.0 + np.exp(grid.logodds))).astype(np.float32)  # 1 - sigmoid(L)
     # A cell the map calls free does not occlude: with clamped log-odds (p >= 0.12) the product would
     # otherwise fade every ray through known air and favour candidates nearest the target.
     p_free[grid.logodds < 0] = 1.0
     unknown = grid.unknown
-    p_free[unknown] = cfg.unknown_visibility
+    p_free[unknown] = cfg.unknown_visibility if unknown_visibility is None else unknown_visibility
     p_free[unknown & grid.shadow] = cfg.shadow_visibility
     return p_free.reshape(-1)
 

@@ -323,3 +323,59 @@ def test_cnbv_does_not_return_to_a_place_it_looked_from():
     again = make_planner("cnbv", cfg).next_view(state)
     assert not again.stop
     assert np.linalg.norm(again.poses[:, :3, 3] - best, axis=1).min() > cfg.nbv.cnbv_candidate_spacing_m / 4
+
+
+def test_only_unknown_cells_carry_information_about_the_drawing():
+    """A cell already hit had its colour seen and a free one holds no paint: with observed_known only
+    the unknown cells near the frontier weigh, and their weight is still h(g)·p_φ(g)."""
+    from planners import nbv
+
+    cfg, state = _state()
+    grid = state.grid
+    frontier = np.argwhere(grid.frontier())
+    paper = nbv.cell_weights(grid, frontier, cfg.nbv.model_copy(update={"observed_known": False}))
+    ours = nbv.cell_weights(grid, frontier, cfg.nbv)
+    box = tuple(slice(int(a), int(a) + n) for a, n in zip(ours.lo, ours.cells.shape[:3]))
+    known = grid.logodds[box] != 0
+    assert (paper.cells[..., 0][known & grid.occupied[box]] > 0).any()  # eq. 6 counts the seen table again
+    assert np.all(ours.cells[..., 0][known] == 0)
+    np.testing.assert_array_equal(ours.cells[..., 0][~known], paper.cells[..., 0][~known])
+    assert ours.cells[..., 0][~known].max() > 0
+
+
+def test_unknown_air_does_not_hide_a_view_of_unseen_ground():
+    """Two views of the ground just past the first image's edge, one from above the seen side (its rays
+    cross air the first view saw free), one from above the unseen side (its rays cross unknown air).
+    Most unknown space round a piece is air: the second keeps well over half the first's gain, where at
+    0.95 per cell it kept under a third and views stayed where the map was already known."""
+    from planners import nbv
+
+    cfg, state = _state()
+    frontier = np.argwhere(state.grid.frontier())
+    eyes = np.array([[0.45, -0.15, 0.45], [0.45, 0.20, 0.45]])
+    R = look_at_rotations(eyes, np.broadcast_to([0.45, 0.03, 0.10], eyes.shape))
+
+    def ratio(c):
+        g = nbv.gains(state.grid, eyes, R, nbv.cell_weights(state.grid, frontier, c), nbv.visibility_field(state.grid, c),
+                      K, SIZE, c)
+        return g[1] / g[0]
+
+    assert ratio(cfg.nbv) > 0.6
+    assert ratio(cfg.nbv.model_copy(update={"unknown_visibility": 0.95})) < 0.4
+
+
+def test_cnbv_stops_on_expected_cells_not_on_a_share_of_its_first_gain():
+    """C-NBV's first gain is the best over the whole frontier: a later view worth a fraction of it can
+    still find the rest of the drawing. It stops only when no view is worth min_gain."""
+    from cellctl.scan import make_planner
+
+    cfg, state = _state()
+    planner = make_planner("cnbv", cfg)
+    planner._first_gain = 1e6  # as if the first view had promised far more than is left
+    assert not planner.next_view(state).stop
+    strict = make_planner("cnbv", cfg.model_copy(update={"nbv": cfg.nbv.model_copy(update={"cnbv_min_gain_fraction": 0.2})}))
+    strict._first_gain = 1e6
+    assert strict.next_view(state).stop
+    floor = make_planner("cnbv", cfg.model_copy(update={"nbv": cfg.nbv.model_copy(update={"min_gain": 1e6})}))
+    plan = floor.next_view(state)
+    assert plan.stop and plan.reason == "quality"
