@@ -64,9 +64,12 @@ def cell_weights(grid: OccupancyGrid, frontier_ijk: np.ndarray, cfg: NBVConfig) 
     seeing either again tells nothing about the drawing (eq. 6 would still count their occupancy
     entropy, which drew views back to the surfaces already seen)."""
     phi, box = feature_probability(grid, frontier_ijk, cfg)
-    w = entropy_decrease(grid, box) * phi
-    if cfg.observed_known:
-        w[grid.logodds[box] != 0] = 0.0
+    if cfg.observed_known:  # h(g) of an unknown cell is one number: no per-cell entropy pass
+        c = grid.cfg
+        h0 = _entropy_decrease(np.zeros(1), c.l_hit, c.l_miss, c.l_min, c.l_max)[0]
+        w = np.where(grid.logodds[box] == 0, h0 * phi, np.float32(0.0))
+    else:
+        w = entropy_decrease(grid, box) * phi
     return CellWeights.on_box(grid, box, w, cfg.facing_gain)
 
 
