@@ -87,8 +87,7 @@ class ConstrainedNBV:
         t0 = time.perf_counter()
         if self._last is not None and state.step > self._last[0]:
             # the view taken: the candidate of the last plan nearest to where the camera is now
-            _, eyes, owners = self._last
-            self.book.retarget(owners[int(np.argmin(np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1)))])
+            self.book.taken(state, *self._last[1:])
             self._last = None
         self.book.after_view(state)
         cl = self.book.clusters(state)

@@ -23,6 +23,7 @@ class GuidedNBV:
         self._lattice = sphere_lattice(self.cfg.search_radius_m, self.cfg.min_standoff_m, self.cfg.candidate_spacing_m)
         self.book = TargetBook(cfg)
         self._first_gain: float | None = None  # the scale of a useful view, for the stop rule
+        self._last: tuple | None = None  # (step, ranked eyes, their targets) of a joint plan
 
     def reject(self, plan: ViewPlan) -> None:
         if plan.target is not None:
@@ -59,7 +60,7 @@ class GuidedNBV:
             if len(eyes) == 0:
                 return None
         cost = np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1)
-        gain = nbv.gains(grid, eyes, R, weights, p_free, state.K, state.image_size, cfg, cost)
+        gain = nbv.gains(grid, eyes, R, weights, p_free, state.K, state.image_size, cfg, cost, cfg.footprint_gain)
         q = nbv.quality(gain, cost, cfg.lam)
         rank = np.argsort(-q, kind="stable")
         best = float(gain.max())
@@ -74,6 +75,10 @@ class GuidedNBV:
         t0 = time.perf_counter()
         # A view that found no drawing: its target gets one last try without a viewing cone (at an edge
         # the drawing goes on round the corner), and is given up if that finds nothing either.
+        if self._last is not None and state.step > self._last[0]:
+            # the view taken: the candidate of the last plan nearest to where the camera is now
+            self.book.taken(state, *self._last[1:])
+            self._last = None
         self.book.after_view(state)
         cl = self.book.clusters(state)
         cents, ijk, lab, usable, frontier_xyz = cl.cents, cl.ijk, cl.lab, cl.usable, cl.centers
@@ -86,6 +91,14 @@ class GuidedNBV:
         order = np.argsort(np.linalg.norm(cents - cam, axis=1)) if len(cents) else np.zeros(0, int)
         p_free = nbv.visibility_field(grid, cfg)
         occupied = nbv.OccupiedIndex(grid)
+        if cfg.gain_all_frontier and usable.any():
+            ranked = order[usable[order]]
+            n = cfg.joint_clusters
+            for k in range(0, len(ranked), n):  # the nearest n clusters; the next n if all of them are given up
+                plan = self._joint(state, cl, ranked[k:k + n], p_free, occupied, t0, timings)
+                if not plan.stop:
+                    break
+            return plan
         for c in order[usable[order]][:4]:
             target = cents[c]
             scored = None
@@ -114,3 +127,67 @@ class GuidedNBV:
             return ViewPlan(poses, q, gain, False, "", target=target, frontier=frontier_xyz, timings=timings)
         timings["plan_s"] = time.perf_counter() - t0
         return ViewPlan(empty, np.zeros(0), np.zeros(0), True, reason, frontier=frontier_xyz, timings=timings)
+
+    def _joint(self, state: ScanState, cl, clusters: np.ndarray, p_free: np.ndarray,
+               occupied: "nbv.OccupiedIndex", t0: float, timings: dict) -> ViewPlan:
+        """The candidate spheres of the nearest usable clusters compete in one ranking, each candidate
+        scored on every usable cluster's frontier: a view is worth all the unseen drawing it may
+        show, and the one that resolves two ends at once beats two views of one end each. Per
+        cluster the viewing cones are tried square-on first, as in the one-target plan."""
+        cfg, grid = self.cfg, state.grid
+        empty = np.zeros((0, 4, 4))
+        tiers = (cfg.max_view_angle_deg, cfg.relaxed_view_angle_deg, None)
+        weights = nbv.cell_weights(grid, cl.ijk[cl.usable[cl.lab]], cfg)
+        todo = {}
+        for c in clusters:
+            target = cl.cents[c]
+            start = len(tiers) - 1 if self.book.was_fruitless(target, grid.voxel) else len(self.book.views_of(target, state))
+            todo[int(c)] = (min(start, len(tiers) - 1), nbv.outward_normal(state.surface, target),
+                            np.vstack([self.book.views_of(target, state), framing(state, target)]))
+        first = self._first_gain
+        done_E, done_R, done_o, done_g, done_c = [], [], [], [], []
+        while todo:
+            E, R, owner = [], [], []
+            for c, (tier, normal, past) in list(todo.items()):
+                target, cone = cl.cents[c], tiers[tier]
+                eyes = target + self._lattice
+                eyes = eyes[nbv.feasible_eyes(grid, eyes, target, None if cone is None else normal, cfg, past,
+                                              cone or 90.0, occupied=occupied)]
+                rot = look_at_rotations(eyes, self._aim_point(state, target)) if len(eyes) else np.zeros((0, 3, 3))
+                if len(eyes) and state.reachable is not None and cfg.reach_prefilter:
+                    keep = state.reachable(eyes, rot[:, :, 2])
+                    eyes, rot = eyes[keep], rot[keep]
+                E.append(eyes)
+                R.append(rot)
+                owner.append(np.full(len(eyes), c))
+            E, R, owner = np.concatenate(E), np.concatenate(R), np.concatenate(owner)
+            cost = np.linalg.norm(E - state.camera_pose[:3, 3], axis=1)
+            gain = (nbv.gains(grid, E, R, weights, p_free, state.K, state.image_size, cfg, cost, cfg.footprint_gain)
+                    if len(E) else np.zeros(0))
+            if first is None and len(gain):
+                first = float(gain.max())
+            floor = max(cfg.min_gain, cfg.min_gain_fraction * (first or 0.0))
+            for c in list(todo):
+                m = owner == c
+                tier, normal, past = todo.pop(c)
+                if m.any() and gain[m].max() >= floor:
+                    done_E.append(E[m]), done_R.append(R[m]), done_o.append(owner[m]), done_g.append(gain[m])
+                    done_c.append(cost[m])
+                elif tier + 1 < len(tiers):
+                    todo[c] = (tier + 1, normal, past)
+                else:
+                    self.book.give_up(cl.cents[c])
+        self._first_gain = first
+        frontier_xyz = cl.centers
+        timings["plan_s"] = time.perf_counter() - t0
+        if not done_E:
+            return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "quality", frontier=frontier_xyz, timings=timings)
+        E, R, owner = np.concatenate(done_E), np.concatenate(done_R), np.concatenate(done_o)
+        gain, cost = np.concatenate(done_g), np.concatenate(done_c)
+        q = nbv.quality(gain, cost, cfg.lam)
+        rank = np.argsort(-q, kind="stable")
+        looked_at = cl.cents[owner[rank]]
+        self.book.planned(state, looked_at[0])
+        self._last = (state.step, E[rank], looked_at)
+        return ViewPlan(poses_from(E[rank], R[rank]), q[rank], gain[rank], False, "", target=looked_at[0],
+                        frontier=frontier_xyz, timings=timings)

@@ -112,34 +112,43 @@ def visibility_field(grid: OccupancyGrid, cfg: NBVConfig, unknown_visibility: fl
 
 def gains(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights: CellWeights,
           p_free: np.ndarray, K: np.ndarray, image_size: tuple[int, int], cfg: NBVConfig,
-          cost: np.ndarray | None = None) -> np.ndarray:
-    """gain(s) of eq. 5 for all candidates; `weights` is what cell_weights returns.
+          cost: np.ndarray | None = None, footprint: bool = False) -> np.ndarray:
+    """gain(s) of eq. 5 for all candidates; `weights` is what cell_weights returns. With `footprint`
+    each ray counts the cells its share of the image covers where it crosses them (`ray_patch`).
 
     With the candidates' travel `cost`, scoring is coarse to fine: every candidate is cast with a
     ray bundle `coarse_ray_factor` times sparser per axis, and only the `refine_top` best by Q are
     cast with the full bundle. The others keep their coarse gain, scaled to the fine one's units by
     the refined candidates' ratio: their rank only matters if every refined one proves unreachable."""
     f = cfg.coarse_ray_factor
+    full = (cfg.rays_w, cfg.rays_h)
     if cost is None or f <= 1 or len(eyes) <= cfg.refine_top:
-        return _cast(grid, eyes, rotations, weights, p_free, ray_bundle(K, image_size, cfg.rays_w, cfg.rays_h), cfg)
-    coarse = _cast(grid, eyes, rotations, weights, p_free,
-                   ray_bundle(K, image_size, max(cfg.rays_w // f, 2), max(cfg.rays_h // f, 2)), cfg)
+        return _cast(grid, eyes, rotations, weights, p_free, K, image_size, full, cfg, footprint)
+    coarse = _cast(grid, eyes, rotations, weights, p_free, K, image_size,
+                   (max(cfg.rays_w // f, 2), max(cfg.rays_h // f, 2)), cfg, footprint)
     top = np.argpartition(-quality(coarse, cost, cfg.lam), cfg.refine_top - 1)[:cfg.refine_top]
-    fine = _cast(grid, eyes[top], rotations[top], weights, p_free,
-                 ray_bundle(K, image_size, cfg.rays_w, cfg.rays_h), cfg)
+    fine = _cast(grid, eyes[top], rotations[top], weights, p_free, K, image_size, full, cfg, footprint)
     cs = coarse[top].sum()
     out = coarse * (fine.sum() / cs if cs > 0 else 0.0)
     out[top] = fine
     return out
 
 
+def ray_patch(K: np.ndarray, image_size: tuple[int, int], bundle: tuple[int, int], voxel: float) -> float:
+    """Solid angle one ray of a `bundle` (n_w, n_h) stands for, over a cell's face (sr / voxel²)."""
+    (w, h), (n_w, n_h) = image_size, bundle
+    return float((w / n_w) / K[0, 0] * (h / n_h) / K[1, 1] / voxel**2)
+
+
 def _cast(grid: OccupancyGrid, eyes: np.ndarray, rotations: np.ndarray, weights: CellWeights,
-          p_free: np.ndarray, rays: np.ndarray, cfg: NBVConfig) -> np.ndarray:
+          p_free: np.ndarray, K: np.ndarray, image_size: tuple[int, int], bundle: tuple[int, int],
+          cfg: NBVConfig, footprint: bool) -> np.ndarray:
+    patch = ray_patch(K, image_size, bundle, grid.voxel) if footprint else 0.0
     return raycast.view_gains(np.ascontiguousarray(eyes, dtype=np.float64),
                               np.ascontiguousarray(rotations, dtype=np.float64),
-                              rays, float(cfg.max_range_m), grid.lo, grid.voxel,
+                              ray_bundle(K, image_size, *bundle), float(cfg.max_range_m), grid.lo, grid.voxel,
                               np.asarray(grid.shape, dtype=np.int64), p_free, weights.cells, weights.lo,
-                              weights.facing, int(numba.get_num_threads()))
+                              weights.facing, int(numba.get_num_threads()), patch)
 
 
 def quality(gain: np.ndarray, cost: np.ndarray, lam: float) -> np.ndarray:

@@ -130,14 +130,18 @@ def _traverse_mark(ox, oy, oz, dx, dy, dz, t_start, t_end, lo, voxel, nx, ny, nz
 
 
 @nb.njit(cache=True, parallel=True)
-def view_gains(positions, rotations, ray_dirs, max_range, lo, voxel, shape, p_free, cells, box_lo, facing, n_chunks):
+def view_gains(positions, rotations, ray_dirs, max_range, lo, voxel, shape, p_free, cells, box_lo, facing, n_chunks,
+               patch=0.0):
     """gain(s) of eq. 5 for every candidate in one call: along each ray of the candidate's
     (subsampled) image, sum the weight h(g)·p_φ(g) of each cell of the box times the visibility of
     eq. 8 (product of P[o=0] of the cells before g, p_free over the whole grid); each cell counts
     once per candidate. `cells` (bx, by, bz, 4) holds per box cell the weight and, with `facing`, the
     outward normal of the surface that may be there: the weight is scaled by the cosine at which
     the ray meets it (0 from behind), or by 1/2, the mean over orientations, where no normal is
-    known. Rays that miss the box are skipped and the others stop where they leave it."""
+    known. Rays that miss the box are skipped and the others stop where they leave it.
+    `patch` > 0 is the solid angle one ray stands for over a cell's face (sr / voxel²): a ray at
+    distance t then counts each cell as the max(1, patch·t²) cells its footprint covers there, so a
+    sparse bundle still estimates the cells a far view sees (0: each ray counts the cells it crosses)."""
     nx, ny, nz = shape[0], shape[1], shape[2]
     bx, by, bz = cells.shape[0], cells.shape[1], cells.shape[2]
     roi_lo = np.empty(3)
@@ -168,7 +172,7 @@ def view_gains(positions, rotations, ray_dirs, max_range, lo, voxel, shape, p_fr
                 t_end = _box_exit(ox, oy, oz, dx, dy, dz, roi_lo, roi_hi, max_range)
                 if t_end > 0.0:
                     total += _ray_gain(ox, oy, oz, dx, dy, dz, t_end, lo, voxel, nx, ny, nz,
-                                       p_free, cells, box_lo, facing, stamp, tag)
+                                       p_free, cells, box_lo, facing, stamp, tag, patch)
             gains[s] = total
     return gains
 
@@ -181,7 +185,8 @@ def _box_exit(ox, oy, oz, dx, dy, dz, blo, bhi, max_range):
 
 
 @nb.njit(cache=True, inline="always")
-def _ray_gain(ox, oy, oz, dx, dy, dz, max_range, lo, voxel, nx, ny, nz, p_free, cells, box_lo, facing, stamp, tag):
+def _ray_gain(ox, oy, oz, dx, dy, dz, max_range, lo, voxel, nx, ny, nz, p_free, cells, box_lo, facing, stamp, tag,
+              patch):
     hi = (lo[0] + nx * voxel, lo[1] + ny * voxel, lo[2] + nz * voxel)
     t0, t1 = _clip(ox, oy, oz, dx, dy, dz, 0.0, max_range, lo, hi)
     if t0 >= t1:
@@ -209,6 +214,9 @@ def _ray_gain(ox, oy, oz, dx, dy, dz, max_range, lo, voxel, nx, ny, nz, p_free, 
                             w *= max(0.0, -(dx * fx + dy * fy + dz * fz))
                         else:
                             w *= 0.5
+                    if patch > 0.0:
+                        t = min(tx, ty, tz)
+                        w *= max(1.0, patch * t * t)
                     g += vis * w
         vis *= p_free[_flat(i, j, k, ny, nz)]
         if vis < 1e-4 or min(tx, ty, tz) >= t1:
@@ -252,5 +260,5 @@ def warmup() -> None:
     cells = np.ones((4, 4, 4, 4), np.float32)
     for facing in (False, True):
         view_gains(np.array([[0.02, 0.02, 0.035]]), np.eye(3)[None], np.array([[0.0, 0.0, 1.0]]), 0.1, lo, 0.01, shape,
-                   np.ones(64, np.float32), cells, np.zeros(3, np.int64), facing, 1)
+                   np.ones(64, np.float32), cells, np.zeros(3, np.int64), facing, 1, 0.0)
     segments_blocked(np.zeros((1, 3)), np.full((1, 3), 0.03), lo, 0.01, shape, np.zeros(64, np.uint8))

@@ -59,6 +59,11 @@ class TargetBook:
             self.targets[-1] = np.asarray(target, dtype=np.float64)
             self._growth.retarget(target)
 
+    def taken(self, state: ScanState, eyes: np.ndarray, owners: np.ndarray) -> None:
+        """The last plan ranked candidates `eyes` looking at targets `owners`: the view taken is the
+        one nearest to where the camera is now, and is booked on its target."""
+        self.retarget(owners[int(np.argmin(np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1)))])
+
     def after_view(self, state: ScanState) -> None:
         """A view that found no drawing: its target is marked fruitless (G-NBV then tries it once more
         without a viewing cone: at an edge the drawing goes on round the corner) and given up if it

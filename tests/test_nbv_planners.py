@@ -379,3 +379,81 @@ def test_cnbv_stops_on_expected_cells_not_on_a_share_of_its_first_gain():
     floor = make_planner("cnbv", cfg.model_copy(update={"nbv": cfg.nbv.model_copy(update={"min_gain": 1e6})}))
     plan = floor.next_view(state)
     assert plan.stop and plan.reason == "quality"
+
+
+def test_a_ray_counts_the_cells_its_share_of_the_image_covers():
+    """A 20 x 20 cell patch of unseen ground under a near (0.3 m) and a far (0.7 m) camera, both
+    framing all of it, with a bundle sparser than the cells at either height. Each ray counted only
+    the cells it crosses, so the far view scored a fraction of the near one for the same patch; with
+    each ray standing for its footprint both estimate the patch's 400 cells (within 40 %: a ray that
+    crosses the layer's cells obliquely counts two of them where it spends half its length in each)."""
+    from planners import nbv
+
+    cfg, grid, k = _half_space_grid()
+    c = cfg.nbv.model_copy(update={"coarse_ray_factor": 1, "rays_w": 24, "rays_h": 18})
+    cell = np.array([50, 70, k - 1])
+    box = tuple(slice(int(a) - 15, int(a) + 15) for a in cell)
+    w = np.zeros((30, 30, 30), dtype=np.float32)
+    w[5:25, 5:25, 15] = 1.0  # the layer under the air
+    weights = nbv.CellWeights.on_box(grid, box, w, False)
+    p_free = np.ones(grid.logodds.size, dtype=np.float32)
+    target = grid.centers(cell[None])[0]
+    eyes = target + np.array([[0.01, 0, 0.3], [0.01, 0, 0.7]])  # off the vertical: a look-at roll exists
+    R = look_at_rotations(eyes, np.broadcast_to(target, eyes.shape))
+    crossed = nbv.gains(grid, eyes, R, weights, p_free, K, SIZE, c)
+    covered = nbv.gains(grid, eyes, R, weights, p_free, K, SIZE, c, footprint=True)
+    assert crossed[1] < 0.3 * crossed[0] and crossed[0] < 0.8 * 400
+    assert covered == pytest.approx([400, 400], rel=0.4) and covered[1] > 0.6 * covered[0]
+
+
+def _two_ended_state():
+    """The stripe of _state() seen only in its middle (y from -0.1 to 0.1) by a camera above it: the
+    drawing runs out of the image at both ends, two frontier clusters 0.2 m apart."""
+    cfg = PlannersConfig()
+    grid = OccupancyGrid(cfg.grid)
+    cam = np.array([0.45, 0.0, 0.30])
+    xs, ys = np.meshgrid(np.arange(0.35, 0.55, 0.003), np.arange(-0.10, 0.10, 0.003))
+    table = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.10)], 1).astype(np.float32)
+    grid.integrate(cam, table)
+    paint = np.abs(table[:, 0] - 0.45) < 0.01
+    rgb = np.where(paint[:, None], [220, 20, 20], [120, 120, 120]).astype(np.uint8)
+    surface = Cloud(table, rgb, np.broadcast_to(cam.astype(np.float32), table.shape).copy())
+    drawing = surface.select(paint)
+    grid.set_drawing(drawing.xyz)
+    T = np.eye(4)
+    T[:3, :3] = look_at_rotations(cam[None], np.array([[0.451, 0.0, 0.10]]))[0]
+    T[:3, 3] = cam
+    return cfg, ScanState(0, grid, surface, drawing, surface, T, T, K, SIZE, cam[None])
+
+
+def _frames(pose, points):
+    p = (points - pose[:3, 3]) @ pose[:3, :3]
+    u = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]
+    v = K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
+    return (p[:, 2] > 0) & (u >= 0) & (u < SIZE[0]) & (v >= 0) & (v < SIZE[1])
+
+
+def test_gnbv_takes_the_view_that_shows_both_ends_and_books_the_one_it_took():
+    """Both ends of the stripe are unseen. Scored on every cluster's frontier (gain_all_frontier),
+    the candidate of most gain frames both ends; scored on its own target's only, as the paper's
+    G-NBV, it frames the nearest end alone. (Q's travel cost may still prefer a near view: eq. 4.)
+    The visit is booked on the cluster of the candidate the runner took."""
+    from cellctl.scan import make_planner
+
+    cfg, state = _two_ended_state()
+    ends = np.array([[0.45, -0.10, 0.10], [0.45, 0.10, 0.10]])
+    planner = make_planner("gnbv", cfg)
+    plan = planner.next_view(state)
+    assert not plan.stop and _frames(plan.poses[np.argmax(plan.gain)], ends).all()
+    paper = make_planner("gnbv", cfg.model_copy(update={"nbv": cfg.nbv.model_copy(
+        update={"gain_all_frontier": False, "footprint_gain": False})}))
+    alone = paper.next_view(state)
+    assert _frames(alone.poses[np.argmax(alone.gain)], ends).sum() == 1
+    # the runner could not take the first candidates and took the best one aimed at the other end
+    owners = planner._last[2].copy()  # the cluster each ranked candidate looks at
+    other = int(np.flatnonzero(np.linalg.norm(owners - plan.target, axis=1) > 0.1)[0])
+    assert np.allclose(planner.book.targets, [plan.target])
+    state.step, state.camera_pose = 1, plan.poses[other]
+    state.viewpoints = np.vstack([state.viewpoints, plan.poses[other][:3, 3]])
+    planner.next_view(state)
+    assert np.allclose(planner.book.targets[0], owners[other])
