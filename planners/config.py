@@ -63,10 +63,11 @@ class NBVConfig(_Strict):
     min_gain: float = Field(0.82, ge=0, description="a target whose best raw gain (nats) is below this is given up: "
                             "with only unknown cells counting, 0.82 is three unknown cells' h(g) (0.27 nats each), "
                             "the growth a view must show to count (min_view_growth_voxels)")
-    min_gain_fraction: float = Field(0.1, ge=0, lt=1,
-                                     description="G-NBV: ... or below this share of the first step's best gain (0.1: "
-                                     "with every cluster's frontier in the gain the first view's is the whole "
-                                     "frontier's, and at 0.2 the I-beam's last flange was left unseen)")
+    min_gain_fraction: float = Field(0.2, ge=0, lt=1,
+                                     description="G-NBV: ... or below this share of the first step's best gain")
+    joint_min_gain_fraction: float = Field(0.1, ge=0, lt=1, description="the same share with gain_all_frontier: the "
+                                           "first view's gain is then the whole frontier's, and at 0.2 the I-beam's last "
+                                           "flange was left unseen")
     cnbv_min_gain_fraction: float = Field(0.0, ge=0, lt=1, description="C-NBV: the same share; 0: only min_gain. "
                                           "C-NBV's first gain is the best over the whole frontier, so a share of it "
                                           "ended scans while parts of the drawing were still unseen")
@@ -119,14 +120,16 @@ class NBVConfig(_Strict):
     end_min_points: int = Field(40, ge=1, le=100_000, description="surface points (2 mm apart) that tube must hold")
     observed_known: bool = Field(True, description="a cell observed occupied or free carries no information "
                                  "about the drawing (its colour was seen with it): only unknown cells count in eq. 5")
-    footprint_gain: bool = Field(True, description="G-NBV: each ray counts the cells its share of the image covers "
+    footprint_gain: bool = Field(False, description="G-NBV: each ray counts the cells its share of the image covers "
                                  "where it crosses them (max(1, t² · solid angle per ray / voxel²)), not one: a sparse "
                                  "bundle undercounts what a far view sees by that factor. C-NBV and global keep one per cell crossed: "
                                  "their stop rules were set with it, and C-NBV lost the I-beam with it (92 -> 87 %)")
-    gain_all_frontier: bool = Field(True, description="G-NBV: the candidate spheres of the nearest usable "
+    gain_all_frontier: bool = Field(False, description="G-NBV: the candidate spheres of the nearest usable "
                                     "clusters compete in one ranking and each candidate's gain counts every usable "
                                     "cluster's frontier, not only its target's (the paper: the nearest cluster's "
-                                    "sphere, its frontier alone): a view that resolves two ends is worth both")
+                                    "sphere, its frontier alone): a view that resolves two ends is worth both. Off by "
+                                    "default: with footprint_gain it saves views but leaves more of the I-beam's trench "
+                                    "unseen, which the torch counts as solid (docs/BENCHMARKS.md, 2026-12-02 fourth step)")
     joint_clusters: int = Field(4, ge=1, le=64, description="G-NBV with gain_all_frontier: how many of the nearest "
                                 "usable clusters put their candidate spheres into one ranking")
     facing_gain: bool = Field(True, description="each cell a ray meets counts by the cosine at which the ray meets "

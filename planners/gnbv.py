@@ -166,7 +166,7 @@ class GuidedNBV:
                     if len(E) else np.zeros(0))
             if first is None and len(gain):
                 first = float(gain.max())
-            floor = max(cfg.min_gain, cfg.min_gain_fraction * (first or 0.0))
+            floor = max(cfg.min_gain, cfg.joint_min_gain_fraction * (first or 0.0))
             for c in list(todo):
                 m = owner == c
                 tier, normal, past = todo.pop(c)

@@ -440,13 +440,14 @@ def test_gnbv_takes_the_view_that_shows_both_ends_and_books_the_one_it_took():
     The visit is booked on the cluster of the candidate the runner took."""
     from cellctl.scan import make_planner
 
-    cfg, state = _two_ended_state()
+    paper_cfg, state = _two_ended_state()
+    cfg = paper_cfg.model_copy(update={"nbv": paper_cfg.nbv.model_copy(
+        update={"gain_all_frontier": True, "footprint_gain": True})})
     ends = np.array([[0.45, -0.10, 0.10], [0.45, 0.10, 0.10]])
     planner = make_planner("gnbv", cfg)
     plan = planner.next_view(state)
     assert not plan.stop and _frames(plan.poses[np.argmax(plan.gain)], ends).all()
-    paper = make_planner("gnbv", cfg.model_copy(update={"nbv": cfg.nbv.model_copy(
-        update={"gain_all_frontier": False, "footprint_gain": False})}))
+    paper = make_planner("gnbv", paper_cfg)
     alone = paper.next_view(state)
     assert _frames(alone.poses[np.argmax(alone.gain)], ends).sum() == 1
     # the runner could not take the first candidates and took the best one aimed at the other end
