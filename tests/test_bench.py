@@ -302,8 +302,8 @@ def test_progress_eta_per_planner():
 def test_scoring_bench_compares_exact_and_coarse_to_fine_on_the_same_states(tmp_path):
     """`cellctl bench --scoring` on one scene: both scorings plan from the same two states; the report
     says how much faster and whether the best view changed (the figure itself is not asserted). The
-    I-beam: after G-NBV's first view of the smooth cylinder there is nothing left to plan in the
-    noise-free twin."""
+    I-beam has a second view to plan under either gain; with gain_all_frontier the smooth cylinder's
+    first view leaves nothing to plan in the noise-free twin."""
     r = subprocess.run([sys.executable, "-m", "cellctl.cli", "bench", "--scoring", "--scenes", "i_beam",
                         "--seeds", "1", "--out", str(tmp_path)], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
