@@ -43,22 +43,32 @@ class GuidedNBV:
         n = np.linalg.norm(d)
         return target + ahead * d / n if n > 0.01 else target
 
-    def _score(self, state: ScanState, target: np.ndarray, normal: np.ndarray | None, cone_deg: float,
-               weights, p_free: np.ndarray, occupied: "nbv.OccupiedIndex"):
-        """Ranked (poses, Q, gain) of the candidates around one target, or None if none is worth it."""
+    def _past(self, state: ScanState, target: np.ndarray) -> np.ndarray:
+        """Where the target was already seen from: candidates from there are not offered again."""
+        return np.vstack([self.book.views_of(target, state), framing(state, target)])
+
+    def _candidates(self, state: ScanState, target: np.ndarray, normal: np.ndarray | None, cone_deg: float,
+                    past: np.ndarray, occupied: "nbv.OccupiedIndex") -> tuple[np.ndarray, np.ndarray]:
+        """(eyes, rotations) of the sphere round one target that pass feasible_eyes within the cone,
+        look at its aim point and, when the runner gives a reach map, are reachable."""
         cfg, grid = self.cfg, state.grid
         eyes = target + self._lattice
-        past = np.vstack([self.book.views_of(target, state), framing(state, target)])
-        eyes = eyes[nbv.feasible_eyes(grid, eyes, target, normal, cfg, past, cone_deg,
-                                      occupied=occupied)]
+        eyes = eyes[nbv.feasible_eyes(grid, eyes, target, normal, cfg, past, cone_deg, occupied=occupied)]
         if len(eyes) == 0:
-            return None
+            return eyes, np.zeros((0, 3, 3))
         R = look_at_rotations(eyes, self._aim_point(state, target))
         if state.reachable is not None and cfg.reach_prefilter:
             keep = state.reachable(eyes, R[:, :, 2])
             eyes, R = eyes[keep], R[keep]
-            if len(eyes) == 0:
-                return None
+        return eyes, R
+
+    def _score(self, state: ScanState, target: np.ndarray, normal: np.ndarray | None, cone_deg: float,
+               weights, p_free: np.ndarray, occupied: "nbv.OccupiedIndex"):
+        """Ranked (poses, Q, gain) of the candidates around one target, or None if none is worth it."""
+        cfg, grid = self.cfg, state.grid
+        eyes, R = self._candidates(state, target, normal, cone_deg, self._past(state, target), occupied)
+        if len(eyes) == 0:
+            return None
         cost = np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1)
         gain = nbv.gains(grid, eyes, R, weights, p_free, state.K, state.image_size, cfg, cost, cfg.footprint_gain)
         q = nbv.quality(gain, cost, cfg.lam)
@@ -73,12 +83,12 @@ class GuidedNBV:
     def next_view(self, state: ScanState) -> ViewPlan:
         cfg, grid = self.cfg, state.grid
         t0 = time.perf_counter()
-        # A view that found no drawing: its target gets one last try without a viewing cone (at an edge
-        # the drawing goes on round the corner), and is given up if that finds nothing either.
         if self._last is not None and state.step > self._last[0]:
             # the view taken: the candidate of the last plan nearest to where the camera is now
             self.book.taken(state, *self._last[1:])
             self._last = None
+        # A view that found no drawing: its target gets one last try without a viewing cone (at an edge
+        # the drawing goes on round the corner), and is given up if that finds nothing either.
         self.book.after_view(state)
         cl = self.book.clusters(state)
         cents, ijk, lab, usable, frontier_xyz = cl.cents, cl.ijk, cl.lab, cl.usable, cl.centers
@@ -93,9 +103,10 @@ class GuidedNBV:
         occupied = nbv.OccupiedIndex(grid)
         if cfg.gain_all_frontier and usable.any():
             ranked = order[usable[order]]
+            weights = nbv.cell_weights(grid, ijk[usable[lab]], cfg)  # every usable cluster's frontier
             n = cfg.joint_clusters
             for k in range(0, len(ranked), n):  # the nearest n clusters; the next n if all of them are given up
-                plan = self._joint(state, cl, ranked[k:k + n], p_free, occupied, t0, timings)
+                plan = self._joint(state, cl, ranked[k:k + n], weights, p_free, occupied, t0, timings)
                 if not plan.stop:
                     break
             return plan
@@ -128,7 +139,7 @@ class GuidedNBV:
         timings["plan_s"] = time.perf_counter() - t0
         return ViewPlan(empty, np.zeros(0), np.zeros(0), True, reason, frontier=frontier_xyz, timings=timings)
 
-    def _joint(self, state: ScanState, cl, clusters: np.ndarray, p_free: np.ndarray,
+    def _joint(self, state: ScanState, cl, clusters: np.ndarray, weights: "nbv.CellWeights", p_free: np.ndarray,
                occupied: "nbv.OccupiedIndex", t0: float, timings: dict) -> ViewPlan:
         """The candidate spheres of the nearest usable clusters compete in one ranking, each candidate
         scored on every usable cluster's frontier: a view is worth all the unseen drawing it may
@@ -137,26 +148,20 @@ class GuidedNBV:
         cfg, grid = self.cfg, state.grid
         empty = np.zeros((0, 4, 4))
         tiers = (cfg.max_view_angle_deg, cfg.relaxed_view_angle_deg, None)
-        weights = nbv.cell_weights(grid, cl.ijk[cl.usable[cl.lab]], cfg)
         todo = {}
         for c in clusters:
             target = cl.cents[c]
             start = len(tiers) - 1 if self.book.was_fruitless(target, grid.voxel) else len(self.book.views_of(target, state))
             todo[int(c)] = (min(start, len(tiers) - 1), nbv.outward_normal(state.surface, target),
-                            np.vstack([self.book.views_of(target, state), framing(state, target)]))
+                            self._past(state, target))
         first = self._first_gain
-        done_E, done_R, done_o, done_g, done_c = [], [], [], [], []
+        done = []  # per settled cluster: its candidates' (eyes, rotations, owner, gain, cost)
         while todo:
             E, R, owner = [], [], []
             for c, (tier, normal, past) in list(todo.items()):
-                target, cone = cl.cents[c], tiers[tier]
-                eyes = target + self._lattice
-                eyes = eyes[nbv.feasible_eyes(grid, eyes, target, None if cone is None else normal, cfg, past,
-                                              cone or 90.0, occupied=occupied)]
-                rot = look_at_rotations(eyes, self._aim_point(state, target)) if len(eyes) else np.zeros((0, 3, 3))
-                if len(eyes) and state.reachable is not None and cfg.reach_prefilter:
-                    keep = state.reachable(eyes, rot[:, :, 2])
-                    eyes, rot = eyes[keep], rot[keep]
+                cone = tiers[tier]
+                eyes, rot = self._candidates(state, cl.cents[c], None if cone is None else normal, cone or 90.0,
+                                             past, occupied)
                 E.append(eyes)
                 R.append(rot)
                 owner.append(np.full(len(eyes), c))
@@ -171,8 +176,7 @@ class GuidedNBV:
                 m = owner == c
                 tier, normal, past = todo.pop(c)
                 if m.any() and gain[m].max() >= floor:
-                    done_E.append(E[m]), done_R.append(R[m]), done_o.append(owner[m]), done_g.append(gain[m])
-                    done_c.append(cost[m])
+                    done.append((E[m], R[m], owner[m], gain[m], cost[m]))
                 elif tier + 1 < len(tiers):
                     todo[c] = (tier + 1, normal, past)
                 else:
@@ -180,10 +184,9 @@ class GuidedNBV:
         self._first_gain = first
         frontier_xyz = cl.centers
         timings["plan_s"] = time.perf_counter() - t0
-        if not done_E:
+        if not done:
             return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "quality", frontier=frontier_xyz, timings=timings)
-        E, R, owner = np.concatenate(done_E), np.concatenate(done_R), np.concatenate(done_o)
-        gain, cost = np.concatenate(done_g), np.concatenate(done_c)
+        E, R, owner, gain, cost = (np.concatenate(parts) for parts in zip(*done))
         q = nbv.quality(gain, cost, cfg.lam)
         rank = np.argsort(-q, kind="stable")
         looked_at = cl.cents[owner[rank]]
