@@ -13,7 +13,7 @@ from planners.config import CutPathConfig
 from planners.cutpath import CutPath, build_cut_path, plan_cut, torch_kinematics
 from planners.cutpath.ladder import COLLISION, OUT_OF_REACH, RECONFIGURE, plan_ladder, tilt_directions
 from planners.cutpath.geometry import arc_length, center_on_paint, pivots, torch_poses
-from planners.cutpath.nozzle import NozzleCheck, nozzle_balls
+from planners.cutpath.nozzle import NozzleCheck, frustum_distance, nozzle_balls
 from planners.metrics import cut_accuracy
 from planners.motion.ik_batch import solve_axis_ik_batch
 from planners.motion.limits import PANDA_MAX_VELOCITY, PANDA_Q_READY
@@ -140,6 +140,45 @@ def test_the_nozzle_balls_contain_the_taper_and_the_head_up_to_the_fine_length()
     d = np.linalg.norm(pts[:, None, :] - np.column_stack([np.zeros((len(u), 2)), u])[None], axis=2)
     assert (d <= r[None] + 1e-12).any(axis=1).all()
     assert (r - u).max() < CFG.standoff_m - CFG.nozzle_margin_m, "upright over flat metal the nozzle is clear"
+
+
+def test_the_torch_solid_distance_matches_its_sampled_surface():
+    """frustum_distance against a dense sampling of the taper, the head's side and both flat ends:
+    0 inside, the distance to the nearest sample outside (within the sampling's spacing)."""
+    torch = CFG.torch
+    L, F, rn, R = torch.nozzle_length_m, torch.fine_length_m, torch.nozzle_radius_m, torch.radius_m
+    u = np.linspace(0.0, F, 1201)
+    r = rn + (R - rn) * np.minimum(u / L, 1.0)
+    side = np.column_stack([u, r])
+    ends = np.vstack([np.column_stack([np.zeros(200), np.linspace(0, rn, 200)]),
+                      np.column_stack([np.full(200, F), np.linspace(0, R, 200)])])
+    profile = np.vstack([side, ends])
+    rng = np.random.default_rng(4)
+    q = np.column_stack([rng.uniform(-0.02, F + 0.02, 3000), rng.uniform(0.0, R + 0.02, 3000)])
+    got = frustum_distance(q[:, 0], q[:, 1], torch)
+    r_at = rn + (R - rn) * np.clip(q[:, 0] / L, 0, 1)
+    inside = (q[:, 0] >= 0) & (q[:, 0] <= F) & (q[:, 1] <= r_at)
+    assert np.all(got[inside] == 0.0) and np.all(got[~inside] > 0.0)
+    want = np.linalg.norm(q[~inside, None, :] - profile[None], axis=2).min(axis=1)
+    assert np.allclose(got[~inside], want, atol=1e-4)
+
+
+def test_depth_noise_under_the_tip_does_not_close_the_standoff():
+    """Upright 10 mm over a plate whose points scatter up to 5 mm above it (a far view's depth
+    noise): the balls round the nozzle reach 7.4 mm in front of the tip and hold such points,
+    the torch itself is 10 mm up and clear; a point 1.5 mm in front of the tip is not."""
+    floor = _plate(x=(-0.05, 0.05), y=(-0.05, 0.05), z=0.0)
+    rng = np.random.default_rng(5)
+    noisy = floor + np.column_stack([np.zeros((len(floor), 2)), rng.uniform(0.0, 0.005, len(floor))])
+    axis = np.array([[0.0, 0.0, -1.0]])
+    tip = np.array([[0.0, 0.0, CFG.standoff_m]])
+    u, r = nozzle_balls(CFG.torch)
+    assert u[0] - r[0] - CFG.nozzle_margin_m < -0.005, "the first ball holds the noise band"
+    assert NozzleCheck(noisy, CFG.torch, CFG.nozzle_margin_m)(tip, axis)[0]
+    touching = np.vstack([noisy, [[0.003, 0.0, CFG.standoff_m - 0.0015]]])
+    assert not NozzleCheck(touching, CFG.torch, CFG.nozzle_margin_m)(tip, axis)[0]
+    beside = np.vstack([noisy, [[CFG.torch.nozzle_radius_m + 0.003, 0.0, CFG.standoff_m + 0.001]]])
+    assert NozzleCheck(beside, CFG.torch, CFG.nozzle_margin_m)(tip, axis)[0], "3 mm beside the nozzle is clear"
 
 
 def test_a_nozzle_leaning_into_a_wall_is_not_clear():

@@ -4,7 +4,10 @@ last centimetres of the torch, which work ``standoff_m`` off the metal: in an in
 close the room the nozzle and head fit into. The first ``fine_length_m`` of the torch (nozzle taper,
 then head) is checked against the surface cloud itself, as a chain of balls whose union contains it
 (a k-d tree query per ball, all poses at once), and against the unseen cells in front of the
-surface, where a piece the scan missed could stand."""
+surface, where a piece the scan missed could stand. The balls bulge past the tip's flat face (by
+5 mm at the first ball): where they meet the surface, the points they hold are measured against
+the torch's own solid of revolution, so the depth noise of the metal under the tip does not close
+the standoff."""
 
 from __future__ import annotations
 
@@ -33,6 +36,29 @@ def nozzle_balls(torch: TorchConfig) -> tuple[np.ndarray, np.ndarray]:
     return u, np.hypot(s / 2, widest)
 
 
+def frustum_distance(u: np.ndarray, rho: np.ndarray, torch: TorchConfig) -> np.ndarray:
+    """Distance (0 inside) from points at ``u`` back from the tip along the axis and ``rho`` off it
+    to the torch's first ``fine_length_m``: the solid of revolution of the taper from
+    ``nozzle_radius_m`` at the tip to ``radius_m`` at ``nozzle_length_m``, then the head. Its
+    profile is convex, so outside it the distance is the nearest of its four edges."""
+    L, F = torch.nozzle_length_m, torch.fine_length_m
+    rn, R = torch.nozzle_radius_m, torch.radius_m
+
+    def radius(x):
+        return rn + (R - rn) * np.clip(x / L, 0.0, 1.0) if L > 0 else R + 0.0 * x
+
+    inside = (u >= 0.0) & (u <= F) & (rho <= radius(u))
+    Lc = min(L, F)
+    V = np.array([[0.0, 0.0], [0.0, float(radius(0.0))], [Lc, float(radius(Lc))], [F, float(radius(F))], [F, 0.0]])
+    Q = np.stack([u, rho], axis=-1)
+    d = np.full(u.shape, np.inf)
+    for a, b in zip(V[:-1], V[1:]):  # the profile's four edges
+        ab = b - a
+        t = np.clip(((Q - a) @ ab) / max(float(ab @ ab), 1e-18), 0.0, 1.0)
+        d = np.minimum(d, np.linalg.norm(Q - (a + t[..., None] * ab), axis=-1))
+    return np.where(inside, 0.0, d)
+
+
 class NozzleCheck:
     """Is the torch's working end clear of the scanned surface by ``margin_m`` with its tip at
     ``tips`` and its axis (tip pointing along it, into the metal) along ``axes``? ``unseen``: centres
@@ -54,6 +80,7 @@ class NozzleCheck:
         self.offsets, self.radii = nozzle_balls(torch)
         self.head = self.offsets >= torch.nozzle_length_m  # the nozzle works closer to the metal than a cell
         self.margin = float(margin_m)
+        self._torch = torch
 
     def __call__(self, tips: np.ndarray, axes: np.ndarray) -> np.ndarray:
         """(...) bool for tips and unit axes of shape (..., 3)."""
@@ -65,9 +92,29 @@ class NozzleCheck:
         reach = self.radii + self.margin
         d, _ = self.tree.query(flat, distance_upper_bound=float(reach.max()))
         clear = (d.reshape(centres.shape[:-1]) > reach).all(axis=-1)
+        if not clear.all():  # the balls are a broad phase: the torch's own shape decides
+            clear[~clear] = self._solid_clear(tips[~clear], axes[~clear])
         head = self.head
         if self.unseen is not None and head.any():
             reach = self.radii[head] + self.margin + self.cell_reach
             d, _ = self.unseen.query(centres[..., head, :].reshape(-1, 3), distance_upper_bound=float(reach.max()))
             clear &= (d.reshape(centres.shape[:-2] + (int(head.sum()),)) > reach).all(axis=-1)
+        return clear
+
+    def _solid_clear(self, tips: np.ndarray, axes: np.ndarray) -> np.ndarray:
+        """(M,) bool for tips and axes (M,3): no surface point within ``margin_m`` of the torch's
+        solid (``frustum_distance``), among the points the balls (dilated by the margin) hold."""
+        K = len(self.offsets)
+        centres = (tips[:, None, :] - self.offsets[:, None] * axes[:, None, :]).reshape(-1, 3)
+        reach = np.tile(self.radii + self.margin, len(tips))
+        counts = self.tree.query_ball_point(centres, reach, return_length=True)
+        near = self.tree.query_ball_point(centres, reach, return_sorted=False)
+        idx = np.concatenate(near).astype(np.int64) if counts.sum() else np.zeros(0, np.int64)
+        pose = np.repeat(np.repeat(np.arange(len(tips)), K), counts)
+        rel = self.tree.data[idx] - tips[pose]
+        along = np.einsum("ij,ij->i", rel, axes[pose])  # into the metal; the torch lies back along -axis
+        rho = np.linalg.norm(rel - along[:, None] * axes[pose], axis=1)
+        hit = frustum_distance(-along, rho, self._torch) <= self.margin
+        clear = np.ones(len(tips), dtype=bool)
+        clear[pose[hit]] = False
         return clear
