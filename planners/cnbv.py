@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 from planners import nbv
 from planners.base import ScanState, ViewPlan
 from planners.config import PlannersConfig
+from planners.open_edges import EdgeViews
 from planners.targets import TargetBook, framing
 from planners.views import look_at_rotations, poses_from
 
@@ -39,6 +40,7 @@ class ConstrainedNBV:
         self._unreachable = np.zeros((0, 3))  # candidate positions the runner could not reach
         self._last: tuple | None = None  # (step, ranked candidate positions, the centroid each looks at)
         self._failed: dict[tuple, int] = {}  # cluster centroid -> plans on it the runner could not reach
+        self.edges = EdgeViews(self.cfg, self.cfg.open_edge_radius_m) if "cnbv" in self.cfg.open_edge_views else None
 
     def reject(self, plan: ViewPlan) -> None:
         """The runner reached none of the candidates it tried: those positions are dropped from now on
@@ -96,7 +98,7 @@ class ConstrainedNBV:
         timings = {"frontier_s": time.perf_counter() - t0}
         empty = np.zeros((0, 4, 4))
         if len(frontier) == 0:
-            return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "frontier", frontier=cl.centers, timings=timings)
+            return self._at_edges(state, "frontier", cl.centers, timings)
         eyes = self._search_space(grid, frontier[:: max(1, len(frontier) // cfg.cnbv_max_frontier)])
         # each position looks at its nearest frontier cell, within the cone of that cell's surface
         _, near = cKDTree(frontier).query(eyes, k=1)
@@ -117,7 +119,7 @@ class ConstrainedNBV:
         eyes, targets, owner = eyes[ok], targets[ok], owner[ok]
         timings["candidates_s"] = time.perf_counter() - t0
         if len(eyes) == 0:
-            return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "frontier", frontier=frontier, timings=timings)
+            return self._at_edges(state, "frontier", frontier, timings)
         base = look_at_rotations(eyes, targets)
         R = np.concatenate([_turn(base, y, p) for y, p in self._turns])
         E = np.tile(eyes, (len(self._turns), 1))
@@ -126,7 +128,7 @@ class ConstrainedNBV:
             keep = state.reachable(E, R[:, :, 2])
             E, R, owner_of = E[keep], R[keep], owner_of[keep]
         if len(E) == 0:
-            return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "unreachable", frontier=frontier, timings=timings)
+            return self._at_edges(state, "unreachable", frontier, timings)
         weights = nbv.cell_weights(grid, ijk, cfg)
         cost = np.linalg.norm(E - state.camera_pose[:3, 3], axis=1)
         gain = nbv.gains(grid, E, R, weights, nbv.visibility_field(grid, cfg), state.K, state.image_size, cfg, cost)
@@ -139,8 +141,20 @@ class ConstrainedNBV:
         stop = best < max(cfg.min_gain, cfg.cnbv_min_gain_fraction * self._first_gain) or q[rank[0]] < cfg.delta_q
         looked_at = cl.cents[owner_of[rank]]
         target = looked_at[0]
+        if stop and self.edges is not None:
+            return self._at_edges(state, "quality", frontier, timings)
         if not stop:
             self.book.planned(state, target)
             self._last = (state.step, E[rank], looked_at)
         return ViewPlan(poses_from(E[rank], R[rank]), q[rank], gain[rank], bool(stop), "quality" if stop else "",
                         target=target, frontier=frontier, timings=timings)
+
+    def _at_edges(self, state: ScanState, reason: str, frontier: np.ndarray, timings: dict) -> ViewPlan:
+        """The grid's frontier is done: a view of the open paint (planners.open_edges), or the stop."""
+        if self.edges is None:
+            return ViewPlan(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), True, reason, frontier=frontier,
+                            timings=timings)
+        plan, last = self.edges.or_stop(state, self.book, reason, frontier, timings)
+        if last is not None:
+            self._last = last
+        return plan

@@ -6,6 +6,8 @@ import math
 from pathlib import Path
 
 import numpy as np
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from configs.loading import load_yaml_model as _load_yaml_model
@@ -128,13 +130,19 @@ class NBVConfig(_Strict):
                                     "clusters compete in one ranking and each candidate's gain counts every usable "
                                     "cluster's frontier, not only its target's (the paper: the nearest cluster's "
                                     "sphere, its frontier alone): a view that resolves two ends is worth both. Off by "
-                                    "default: with footprint_gain it saves views but the I-beam's cut drops from 74 to 58 % "
-                                    "(docs/BENCHMARKS.md, 2026-12-02 fourth step)")
+                                    "default: with footprint_gain it saves views but the basket falls to 90.5 % in 5-10 views "
+                                    "(docs/BENCHMARKS.md, 2026-12-02 fifth step)")
     joint_clusters: int = Field(4, ge=1, le=64, description="G-NBV with gain_all_frontier: how many of the nearest "
                                 "usable clusters put their candidate spheres into one ranking")
     facing_gain: bool = Field(True, description="each cell a ray meets counts by the cosine at which the ray meets "
                               "the surface the map says may be there (it faces observed free space); 0 from behind. "
                               "False: eq. 5 as the paper")
+    open_edge_views: tuple[Literal["cnbv", "gnbv"], ...] = Field(
+        ("cnbv",), description="planners that, when the grid's frontier has nothing left worth a view, look at the "
+        "paint where the measured surface stops (planners.open_edges), one view per group of it: C-NBV's basket "
+        "90.5-97.2 -> 96.7-97.2 %. Not G-NBV: 10 more views on the basket for 0.5-2 points")
+    open_edge_radius_m: float = Field(0.005, gt=0, le=0.05, description="disc of measured surface that tells whether "
+                                      "a paint point lies on its border: a few 2 mm point spacings")
     max_target_visits: int = Field(3, ge=1, le=20, description="give up a frontier cluster after this many views at it")
     reach_prefilter: bool = Field(True, description="drop candidates the arm's capability map calls unreachable "
                                   "before scoring (planners.motion.reach_map), when the runner provides one")

@@ -11,6 +11,7 @@ import numpy as np
 from planners import nbv
 from planners.base import ScanState, ViewPlan
 from planners.config import PlannersConfig
+from planners.open_edges import EdgeViews
 from planners.targets import TargetBook, framing
 from planners.views import look_at_rotations, poses_from, sphere_lattice
 
@@ -24,6 +25,7 @@ class GuidedNBV:
         self.book = TargetBook(cfg)
         self._first_gain: float | None = None  # the scale of a useful view, for the stop rule
         self._last: tuple | None = None  # (step, ranked eyes, their targets) of a joint plan
+        self.edges = EdgeViews(self.cfg, self.cfg.open_edge_radius_m) if "gnbv" in self.cfg.open_edge_views else None
 
     def reject(self, plan: ViewPlan) -> None:
         if plan.target is not None:
@@ -109,7 +111,7 @@ class GuidedNBV:
                 plan = self._joint(state, cl, ranked[k:k + n], weights, p_free, occupied, t0, timings)
                 if not plan.stop:
                     break
-            return plan
+            return self._at_edges(state, plan) if plan.stop else plan
         for c in order[usable[order]][:4]:
             target = cents[c]
             scored = None
@@ -137,7 +139,17 @@ class GuidedNBV:
             timings["plan_s"] = time.perf_counter() - t0
             return ViewPlan(poses, q, gain, False, "", target=target, frontier=frontier_xyz, timings=timings)
         timings["plan_s"] = time.perf_counter() - t0
-        return ViewPlan(empty, np.zeros(0), np.zeros(0), True, reason, frontier=frontier_xyz, timings=timings)
+        return self._at_edges(state, ViewPlan(empty, np.zeros(0), np.zeros(0), True, reason, frontier=frontier_xyz,
+                                              timings=timings))
+
+    def _at_edges(self, state: ScanState, stop: ViewPlan) -> ViewPlan:
+        """The grid's frontier is done: a view of the open paint (planners.open_edges), or the stop."""
+        if self.edges is None:
+            return stop
+        plan, last = self.edges.or_stop(state, self.book, stop.reason, stop.frontier, stop.timings)
+        if last is not None:
+            self._last = last
+        return plan
 
     def _joint(self, state: ScanState, cl, clusters: np.ndarray, weights: "nbv.CellWeights", p_free: np.ndarray,
                occupied: "nbv.OccupiedIndex", t0: float, timings: dict) -> ViewPlan:

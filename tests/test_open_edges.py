@@ -59,3 +59,70 @@ def test_open_edges_take_no_nonsense():
     with pytest.raises(ValueError, match="radius_m"):
         open_paint_edges(np.zeros((3, 3)), np.ones((3, 3)), np.zeros((10, 3)), 0.0)
     assert len(open_paint_edges(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((10, 3)), 0.005).index) == 0
+
+
+def test_a_view_further_round_the_edge_scores_more_and_one_along_it_little():
+    """One open point, its surface facing +z and going on unseen towards +y, seen from 45 deg on
+    the -y side: a view from 45 deg on the +y side looks 90 deg further round, one from straight
+    above 45 deg; one along the edge (from +x) sees the edge edge-on, one from behind the surface
+    or from further back on the seen side nothing."""
+    from planners.open_edges import OpenEdges, round_the_edge
+
+    pts = OpenEdges(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), np.array([[0.0, 1.0, 0.0]]), np.zeros(1, int))
+    origins = np.array([[0.0, -0.3, 0.3]])
+    eyes = np.array([[0.0, 0.3, 0.3], [0.0, 0.0, 0.4], [0.4, 0.0, 0.02], [0.0, 0.3, -0.3], [0.0, -0.4, 0.2]])
+    more = np.degrees(round_the_edge(eyes, pts, origins)[:, 0])
+    assert more[0] == pytest.approx(90.0) and more[1] == pytest.approx(45.0)
+    assert 0.0 < more[2] < 5.0
+    assert more[3] == 0.0 and more[4] == 0.0
+
+
+def _rod_state():
+    """A 16 mm rod across the table at z = 0.15 seen from above, its paint ending at the flanks
+    where the camera's view of the rod ended (60 deg round each side); every other cell of the grid
+    observed: the grid's frontier has nothing left."""
+    from planners.base import ScanState
+    from planners.clouds import Cloud
+    from planners.config import PlannersConfig
+    from planners.grid import OccupancyGrid
+    from planners.views import look_at_rotations
+
+    cfg = PlannersConfig()
+    grid = OccupancyGrid(cfg.grid)
+    cam = np.array([0.45, 0.0, 0.55])
+    rod, _ = _rod(60.0, length=0.2)
+    rod = rod + np.array([0.45, 0.0, 0.15])
+    grid.integrate(cam, rod.astype(np.float32))
+    grid.logodds[grid.logodds == 0] = -2.0  # the rest observed free: no frontier
+    paint = np.abs(rod[:, 0] - 0.45) <= 0.0125
+    origin = np.broadcast_to(cam, rod.shape).astype(np.float32).copy()
+    rgb = np.where(paint[:, None], [220, 20, 20], [120, 120, 120]).astype(np.uint8)
+    surface = Cloud(rod.astype(np.float32), rgb, origin)
+    drawing = surface.select(paint)
+    grid.set_drawing(drawing.xyz)
+    T = np.eye(4)
+    T[:3, :3] = look_at_rotations(cam[None], np.array([[0.45, 0.0, 0.15]]))[0]
+    T[:3, 3] = cam
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    return cfg, ScanState(1, grid, surface, drawing, surface, T, T, K, (320, 240), np.vstack([cam, cam]))
+
+
+def test_cnbv_looks_round_the_rod_when_the_grid_frontier_is_done():
+    """With nothing left on the grid, C-NBV (open_edge_views) plans a view from a flank's side,
+    lower than the view that saw the rod; G-NBV (not listed) stops; the next plan looks at the
+    other flank, and the one after stops: one view per group of open paint."""
+    from planners.cnbv import ConstrainedNBV
+    from planners.gnbv import GuidedNBV
+
+    cfg, state = _rod_state()
+    assert not state.grid.frontier(cfg.nbv.frontier_reach_voxels).any()
+    assert GuidedNBV(cfg).next_view(state).stop
+    cnbv = ConstrainedNBV(cfg)
+    first = cnbv.next_view(state)
+    assert not first.stop and first.gain[0] > 0
+    eye = first.poses[0, :3, 3]
+    side = np.sign(first.target[1])
+    assert side * eye[1] > 0.15 and eye[2] < 0.45, "from the flank's side, lower down"
+    second = cnbv.next_view(state)
+    assert not second.stop and np.sign(second.target[1]) == -side
+    assert cnbv.next_view(state).stop
