@@ -169,7 +169,7 @@ class EdgeViews:
             return None
         occupied = occupied or nbv.OccupiedIndex(grid)
         cam = state.camera_pose[:3, 3]
-        for i in sorted(todo, key=lambda i: np.linalg.norm(cents[i] - cam)):  # the nearest group first
+        for i in todo:  # the largest group first: the view budget may end before the last
             c = cents[i]
             self.looked_at.append((c, ways[i]))
             eyes = c + self._lattice  # no viewing cone: which way round the edge is for the gain to say
