@@ -321,6 +321,19 @@ def scoring_bench(args, out: Path) -> int:
     return 0
 
 
+def oracle_bench(args, out: Path) -> int:
+    from cellctl import oracle_bench as ob
+    from cellctl.config import load_cell_config
+    from planners.config import load_planners_config
+    from sim.scenes import SCENE_NAMES
+
+    cfg, cfg_path = load_cell_config(args.config)
+    pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
+    scenes = parse_list(args.scenes, SCENE_NAMES, "scenes", SCENE_NAMES)
+    print(ob.write(ob.measure(cfg, pcfg, scenes), out))
+    return 0
+
+
 def cli_bench(args) -> int:
     """`cellctl bench` (parser in cellctl/cli.py). Exit 0: all runs ok; 1: some run failed; 130: interrupted."""
     from cellctl import bench_report
@@ -340,6 +353,8 @@ def cli_bench(args) -> int:
         return cli_load(args, Path(args.out) if args.out else default_out_dir())
     if getattr(args, "scoring", False):
         return scoring_bench(args, Path(args.out) if args.out else default_out_dir())
+    if getattr(args, "oracle", False):
+        return oracle_bench(args, Path(args.out) if args.out else default_out_dir())
     q = QUICK if args.quick else {}
     scenes = parse_list(args.scenes, SCENE_NAMES, "scenes", q.get("scenes", SCENE_NAMES))
     planners = parse_list(args.planners, DEFAULT_PLANNERS, "planners", q.get("planners", DEFAULT_PLANNERS))

@@ -278,6 +278,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--scoring", action="store_true",
                    help="instead of scans: G-NBV's coarse-to-fine candidate scoring against exact scoring on the "
                         "same states, in one process (scoring.json, scoring.md)")
+    b.add_argument("--oracle", action="store_true",
+                   help="instead of scans: the coverage an all-knowing planner reaches after 1-4 views (the true "
+                        "mesh cast from reachable positions; oracle.json, oracle.md)")
     b.add_argument("--report", default=None, metavar="BENCH_JSON",
                    help="only rewrite bench.md and the plots next to this bench.json, no scans")
     b.set_defaults(func=_bench)

@@ -1,0 +1,141 @@
+"""`cellctl bench --oracle`: how many views a planner that knew the piece would need.
+
+The planners see a piece for the first time; this bench does not. For every scene it casts the
+true mesh (Open3D) from a dense set of camera positions round the painted line (shells 0.3-0.6 m,
+every 7.5 degrees, aimed at the paint's centre, kept where the arm's capability map reaches),
+with the twin's camera: its field of view, range and grazing limit. Each position sees a set of
+the ground truth's coverage voxels. From the scene's initial view, views are added greedily (the
+one that adds most), starting from each of the `firsts` best first views, and the best coverage
+after 1, 2, 3, 4 views is kept. So the figures are what an all-knowing planner reaches with a
+noise-free camera, bounded by this candidate set and a greedy search: a reference for the
+planners' viewpoint counts, not a proof of the optimum."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+
+from cellctl.config import CellConfig
+from planners.clouds import voxel_keys
+from planners.config import PlannersConfig
+from planners.motion.kinematics import Kinematics
+from planners.motion.reach_map import reach_map_for
+from sim.config import D435Config
+from sim.scenes import load_scene
+from sim.twin import Twin
+
+RADII_M = (0.3, 0.4, 0.5, 0.6)
+STEP_DEG = 7.5
+
+
+def candidate_eyes(centre: np.ndarray, min_z: float) -> np.ndarray:
+    """Camera positions on shells round ``centre``, above ``min_z``."""
+    el = np.radians(np.arange(5.0, 90.0, STEP_DEG))
+    az = np.radians(np.arange(0.0, 360.0, STEP_DEG))
+    E, A = np.meshgrid(el, az, indexing="ij")
+    dirs = np.column_stack([(np.cos(E) * np.cos(A)).ravel(), (np.cos(E) * np.sin(A)).ravel(), np.sin(E).ravel()])
+    eyes = np.vstack([centre + r * dirs for r in RADII_M])
+    return eyes[eyes[:, 2] > min_z]
+
+
+class TrueViews:
+    """Which ground-truth coverage voxels a camera at an eye, aimed at the paint, sees of the true mesh."""
+
+    def __init__(self, mesh_vertices: np.ndarray, mesh_faces: np.ndarray, gt: np.ndarray, voxel: float,
+                 cam: D435Config):
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(np.asarray(mesh_vertices, np.float32)),
+                                 o3d.core.Tensor(np.asarray(mesh_faces, np.uint32)))
+        self.gt = np.asarray(gt, dtype=np.float64)
+        self.normals = self.scene.compute_closest_points(
+            o3d.core.Tensor(self.gt.astype(np.float32)))["primitive_normals"].numpy().astype(np.float64)
+        self.keys, self.voxel_of = np.unique(voxel_keys(self.gt, voxel), return_inverse=True)
+        self.cam = cam
+        self.centre = self.gt.mean(axis=0)
+
+    def seen(self, eye: np.ndarray, aim: np.ndarray | None = None) -> np.ndarray:
+        """(V,) bool over the coverage voxels, for the camera at ``eye`` looking at ``aim``
+        (the paint's centre by default), roll with the image's up to world up."""
+        c = self.cam
+        aim = self.centre if aim is None else aim
+        d = self.gt - eye
+        dist = np.linalg.norm(d, axis=1)
+        u = d / dist[:, None]
+        z = (aim - eye) / np.linalg.norm(aim - eye)
+        x = np.cross(z, [0.0, 0.0, 1.0])
+        x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([1.0, 0.0, 0.0])
+        y = np.cross(z, x)
+        cz = u @ z
+        ok = (cz > 0) & (np.abs(np.arctan2(u @ x, cz)) < math.radians(c.hfov_deg / 2))
+        ok &= np.abs(np.arctan2(u @ y, cz)) < math.radians(c.vfov_deg / 2)
+        depth = dist * cz
+        ok &= (depth > c.min_range_m) & (depth < c.max_range_m)
+        ok &= np.abs(np.einsum("ij,ij->i", u, self.normals)) > math.cos(math.radians(c.max_incidence_deg))
+        rays = np.hstack([np.repeat(eye[None], len(u), 0), u]).astype(np.float32)
+        ok &= np.abs(self.scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy() - dist) < 0.002
+        out = np.zeros(len(self.keys), dtype=bool)
+        out[np.unique(self.voxel_of[ok])] = True
+        return out
+
+
+def greedy_best(S: np.ndarray, start: np.ndarray, views: int, firsts: int) -> list[tuple[float, list[int]]]:
+    """For n = 1..views: (the best coverage share after n views added greedily to ``start``, from
+    each of the ``firsts`` best first views; the rows of ``S`` it took)."""
+    gain = (S & ~start).sum(axis=1)
+    best = [(-1.0, [])] * views
+    for a in np.argsort(-gain)[:firsts]:
+        cov, picks = start | S[a], [int(a)]
+        for n in range(views):
+            if n:
+                b = int(np.argmax((S & ~cov).sum(axis=1)))
+                cov, picks = cov | S[b], picks + [b]
+            if cov.mean() > best[n][0]:
+                best[n] = (float(cov.mean()), list(picks))
+    return best
+
+
+def measure(cfg: CellConfig, pcfg: PlannersConfig, scenes: list[str], views: int = 4, firsts: int = 80) -> dict:
+    voxel = pcfg.coverage_voxel_m
+    twin_cfg = cfg.twin.model_copy(update={"camera": cfg.twin.camera.model_copy(update={"noise": False})})
+    rows = []
+    with Twin(load_scene(scenes[0]), twin_cfg) as twin:
+        m = twin.arm.model
+        kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
+    reach = reach_map_for(kin)
+    for name in scenes:
+        scene = load_scene(name)
+        tv = TrueViews(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points, voxel, twin_cfg.camera)
+        eyes = candidate_eyes(tv.centre, pcfg.nbv.min_camera_z_m)  # the planners' own floor for the camera
+        axes = tv.centre - eyes
+        eyes = eyes[reach.reachable(eyes, axes / np.linalg.norm(axes, axis=1, keepdims=True))]
+        S = np.array([tv.seen(e) for e in eyes])  # one cast per candidate, all its points at once
+        T0 = scene.initial_view_candidates[0]
+        start = tv.seen(T0[:3, 3], T0[:3, 3] + T0[:3, 2])
+        best = greedy_best(S, start, views, firsts)
+        rows.append({"scene": name, "category": scene.category, "voxels": int(len(tv.keys)), "candidates": int(len(eyes)),
+                     "initial_percent": round(100 * float(start.mean()), 1),
+                     "percent_after": [round(100 * b[0], 1) for b in best],
+                     "eyes": [[np.round(eyes[i], 3).tolist() for i in b[1]] for b in best]})
+    return {"voxel_m": voxel, "radii_m": list(RADII_M), "step_deg": STEP_DEG, "firsts": firsts, "scenes": rows}
+
+
+def write(result: dict, out: Path) -> Path:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "oracle.json").write_text(json.dumps(result, indent=1))
+    n = len(result["scenes"][0]["percent_after"]) if result["scenes"] else 0
+    lines = ["# What a planner that knew the piece would need (`cellctl bench --oracle`)", "",
+             "Coverage % of the ground truth's voxels after the initial view and n more, greedy from each of the "
+             f"{result['firsts']} best first views, over reachable positions on shells {result['radii_m']} m every "
+             f"{result['step_deg']} deg aimed at the paint's centre; the twin's camera without noise.", "",
+             "| scene | category | voxels | candidates | initial | " + " | ".join(f"{k} views" for k in range(1, n + 1)) + " |",
+             "|---|---|--:|--:|--:|" + "--:|" * n]
+    for r in result["scenes"]:
+        lines.append(f"| {r['scene']} | {r['category'] or '-'} | {r['voxels']} | {r['candidates']} | {r['initial_percent']} | "
+                     + " | ".join(str(p) for p in r["percent_after"]) + " |")
+    path = out / "oracle.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path
