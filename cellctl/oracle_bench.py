@@ -2,7 +2,9 @@
 
 The planners see a piece for the first time; this bench does not. For every scene it casts the
 true mesh (Open3D) from a dense set of camera positions round the painted line (shells 0.3-0.6 m,
-every 7.5 degrees, aimed at the paint's centre, kept where the arm's capability map reaches),
+every 7.5 degrees, above the planners' camera floor, kept where the arm's capability map reaches),
+each aimed at one of `AIMS` points of the paint (its centre and the farthest-point samples of it:
+on a basket one aim at the centre frames neither end of the line well),
 with the twin's camera: its field of view, range and grazing limit. Each position sees a set of
 the ground truth's coverage voxels. From the scene's initial view, views are added greedily (the
 one that adds most), starting from each of the `firsts` best first views, and the best coverage
@@ -30,6 +32,17 @@ from sim.twin import Twin
 
 RADII_M = (0.3, 0.4, 0.5, 0.6)
 STEP_DEG = 7.5
+AIMS = 5
+
+
+def aim_points(gt: np.ndarray, n: int = AIMS) -> np.ndarray:
+    """The paint's centre and n - 1 farthest-point samples of it (the line's ends first)."""
+    aims = [gt.mean(axis=0)]
+    d = np.linalg.norm(gt - aims[0], axis=1)
+    for _ in range(n - 1):
+        aims.append(gt[int(np.argmax(d))])
+        d = np.minimum(d, np.linalg.norm(gt - aims[-1], axis=1))
+    return np.array(aims)
 
 
 def candidate_eyes(centre: np.ndarray, min_z: float) -> np.ndarray:
@@ -98,7 +111,7 @@ def greedy_best(S: np.ndarray, start: np.ndarray, views: int, firsts: int) -> li
     return best
 
 
-def measure(cfg: CellConfig, pcfg: PlannersConfig, scenes: list[str], views: int = 4, firsts: int = 80) -> dict:
+def measure(cfg: CellConfig, pcfg: PlannersConfig, scenes: list[str], views: int = 4, firsts: int = 150) -> dict:
     voxel = pcfg.coverage_voxel_m
     twin_cfg = cfg.twin.model_copy(update={"camera": cfg.twin.camera.model_copy(update={"noise": False})})
     rows = []
@@ -109,18 +122,25 @@ def measure(cfg: CellConfig, pcfg: PlannersConfig, scenes: list[str], views: int
     for name in scenes:
         scene = load_scene(name)
         tv = TrueViews(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points, voxel, twin_cfg.camera)
-        eyes = candidate_eyes(tv.centre, pcfg.nbv.min_camera_z_m)  # the planners' own floor for the camera
-        axes = tv.centre - eyes
-        eyes = eyes[reach.reachable(eyes, axes / np.linalg.norm(axes, axis=1, keepdims=True))]
-        S = np.array([tv.seen(e) for e in eyes])  # one cast per candidate, all its points at once
+        eyes, aims = [], []
+        for aim in aim_points(tv.gt):
+            e = candidate_eyes(aim, pcfg.nbv.min_camera_z_m)  # the planners' own floor for the camera
+            axes = aim - e
+            e = e[reach.reachable(e, axes / np.linalg.norm(axes, axis=1, keepdims=True))]
+            eyes.append(e)
+            aims.append(np.broadcast_to(aim, e.shape))
+        eyes, aims = np.vstack(eyes), np.vstack(aims)
+        S = np.array([tv.seen(e, a) for e, a in zip(eyes, aims)])  # one cast per candidate, all its points at once
         T0 = scene.initial_view_candidates[0]
         start = tv.seen(T0[:3, 3], T0[:3, 3] + T0[:3, 2])
         best = greedy_best(S, start, views, firsts)
         rows.append({"scene": name, "category": scene.category, "voxels": int(len(tv.keys)), "candidates": int(len(eyes)),
                      "initial_percent": round(100 * float(start.mean()), 1),
                      "percent_after": [round(100 * b[0], 1) for b in best],
-                     "eyes": [[np.round(eyes[i], 3).tolist() for i in b[1]] for b in best]})
-    return {"voxel_m": voxel, "radii_m": list(RADII_M), "step_deg": STEP_DEG, "firsts": firsts, "scenes": rows}
+                     "eyes": [[np.round(eyes[i], 3).tolist() for i in b[1]] for b in best],
+                     "aims": [[np.round(aims[i], 3).tolist() for i in b[1]] for b in best]})
+    return {"voxel_m": voxel, "radii_m": list(RADII_M), "step_deg": STEP_DEG, "aims": AIMS, "firsts": firsts,
+            "scenes": rows}
 
 
 def write(result: dict, out: Path) -> Path:
@@ -130,7 +150,8 @@ def write(result: dict, out: Path) -> Path:
     lines = ["# What a planner that knew the piece would need (`cellctl bench --oracle`)", "",
              "Coverage % of the ground truth's voxels after the initial view and n more, greedy from each of the "
              f"{result['firsts']} best first views, over reachable positions on shells {result['radii_m']} m every "
-             f"{result['step_deg']} deg aimed at the paint's centre; the twin's camera without noise.", "",
+             f"{result['step_deg']} deg, each aimed at one of {result['aims']} points of the paint (its centre and "
+             "farthest-point samples); the twin's camera without noise.", "",
              "| scene | category | voxels | candidates | initial | " + " | ".join(f"{k} views" for k in range(1, n + 1)) + " |",
              "|---|---|--:|--:|--:|" + "--:|" * n]
     for r in result["scenes"]:
