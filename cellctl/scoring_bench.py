@@ -24,7 +24,7 @@ from sim.scenes import load_scene
 from sim.twin import Twin
 
 
-def _states(cfg: CellConfig, pcfg: PlannersConfig, scene_name: str) -> list[ScanState]:
+def gnbv_states(cfg: CellConfig, pcfg: PlannersConfig, scene_name: str) -> list[ScanState]:
     """The scan state after the initial view and after the next one G-NBV (exact scoring) picks."""
     scene = load_scene(scene_name)
     twin_cfg = cfg.twin.model_copy(update={"camera": cfg.twin.camera.model_copy(update={"noise": False}),
@@ -69,7 +69,7 @@ def measure(cfg: CellConfig, pcfg: PlannersConfig, scenes: list[str], repeats: i
     exact = pcfg.model_copy(update={"nbv": pcfg.nbv.model_copy(update={"coarse_ray_factor": 1})})
     rows = []
     for name in scenes:
-        for state in _states(cfg, pcfg, name):
+        for state in gnbv_states(cfg, pcfg, name):
             _plan(pcfg, state)  # warm caches (numba, allocator) before either is timed
             t_exact, t_c2f = [], []
             for _ in range(repeats):  # interleaved, so load drifts hit both alike

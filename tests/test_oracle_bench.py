@@ -33,3 +33,30 @@ def test_a_camera_sees_the_paint_on_top_of_a_plate_from_above_not_from_below():
     assert not tv.seen(np.array([0.0, 0.01, -0.5])).any(), "the plate hides its top from below"
     assert not tv.seen(np.array([0.6, 0.0, 0.006])).any(), "at 89 deg the D435 returns nothing"
     assert not tv.seen(np.array([0.0, 0.01, 0.1])).all(), "0.1 m up, a 42 deg image frames part of it"
+
+
+def test_gnbv_first_step_is_put_to_the_truth_of_the_stripe():
+    """The stripe of test_nbv_planners runs out of its first view at y = 0 and on to y = 0.2 on
+    the table: G-NBV's top view shows some of what lies past the cut, none shows more than the
+    best, and the report names the best one's rank among the candidates."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_nbv_planners import _state
+
+    from cellctl.oracle_bench import first_step
+
+    cfg, state = _state()
+    table = trimesh.creation.box([0.4, 0.7, 0.02])
+    table.apply_translation([0.45, -0.05, 0.09])
+    ys = np.arange(-0.25, 0.2, 0.004)
+    xs = np.arange(0.44, 0.46 + 1e-9, 0.004)
+    X, Y = np.meshgrid(xs, ys)
+    stripe = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, 0.10)])
+    tv = TrueViews(table.vertices, table.faces, stripe, cfg.coverage_voxel_m, D435Config(noise=False))
+    f = first_step(tv, state, cfg)
+    assert f["candidates"] > 10 and 20.0 < f["drawing_percent"] < 80.0
+    assert f["top5_new_percent"][0] > 0.0
+    assert f["best_new_percent"] >= max(f["top5_new_percent"])
+    assert 1 <= f["best_rank"] <= f["candidates"]
