@@ -140,7 +140,7 @@ class NBVConfig(_Strict):
     open_edge_views: tuple[Literal["cnbv", "gnbv"], ...] = Field(
         ("cnbv",), description="planners that, when the grid's frontier has nothing left worth a view, look at the "
         "paint where the measured surface stops (planners.open_edges), one view per group of it: C-NBV's basket "
-        "90.5-97.2 -> 96.7-97.2 %. Not G-NBV: 10 more views on the basket for 0.5-2 points")
+        "90.5-97.2 -> 96.7-97.2 %. Not G-NBV: its basket rises from 94.4 to 96.7 % (median) but in 15 views, not 5")
     open_edge_radius_m: float = Field(0.005, gt=0, le=0.05, description="disc of measured surface that tells whether "
                                       "a paint point lies on its border: a few 2 mm point spacings")
     max_target_visits: int = Field(3, ge=1, le=20, description="give up a frontier cluster after this many views at it")
