@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from scipy.stats import spearmanr
 
 from cellctl.config import CellConfig
 from cellctl.scoring_bench import gnbv_states
@@ -34,7 +35,6 @@ from planners.gnbv import GuidedNBV
 from planners.motion.kinematics import Kinematics
 from planners.motion.reach_map import reach_map_for
 from sim.config import D435Config
-from scipy.stats import spearmanr
 from sim.scenes import load_scene
 from sim.twin import Twin
 

@@ -40,7 +40,7 @@ class ConstrainedNBV:
         self._unreachable = np.zeros((0, 3))  # candidate positions the runner could not reach
         self._last: tuple | None = None  # (step, ranked candidate positions, the centroid each looks at)
         self._failed: dict[tuple, int] = {}  # cluster centroid -> plans on it the runner could not reach
-        self.edges = EdgeViews(self.cfg, self.cfg.open_edge_radius_m) if "cnbv" in self.cfg.open_edge_views else None
+        self.edges = EdgeViews(self.cfg) if "cnbv" in self.cfg.open_edge_views else None
 
     def reject(self, plan: ViewPlan) -> None:
         """The runner reached none of the candidates it tried: those positions are dropped from now on
@@ -151,10 +151,11 @@ class ConstrainedNBV:
 
     def _at_edges(self, state: ScanState, reason: str, frontier: np.ndarray, timings: dict) -> ViewPlan:
         """The grid's frontier is done: a view of the open paint (planners.open_edges), or the stop."""
+        stop = ViewPlan(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), True, reason, frontier=frontier,
+                        timings=timings)
         if self.edges is None:
-            return ViewPlan(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), True, reason, frontier=frontier,
-                            timings=timings)
-        plan, last = self.edges.or_stop(state, self.book, reason, frontier, timings)
+            return stop
+        plan, last = self.edges.or_stop(state, self.book, stop)
         if last is not None:
             self._last = last
         return plan

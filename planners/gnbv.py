@@ -25,7 +25,7 @@ class GuidedNBV:
         self.book = TargetBook(cfg)
         self._first_gain: float | None = None  # the scale of a useful view, for the stop rule
         self._last: tuple | None = None  # (step, ranked eyes, their targets) of a joint plan
-        self.edges = EdgeViews(self.cfg, self.cfg.open_edge_radius_m) if "gnbv" in self.cfg.open_edge_views else None
+        self.edges = EdgeViews(self.cfg) if "gnbv" in self.cfg.open_edge_views else None
 
     def reject(self, plan: ViewPlan) -> None:
         if plan.target is not None:
@@ -111,7 +111,7 @@ class GuidedNBV:
                 plan = self._joint(state, cl, ranked[k:k + n], weights, p_free, occupied, t0, timings)
                 if not plan.stop:
                     break
-            return self._at_edges(state, plan) if plan.stop else plan
+            return self._at_edges(state, plan, occupied) if plan.stop else plan
         for c in order[usable[order]][:4]:
             target = cents[c]
             scored = None
@@ -140,13 +140,13 @@ class GuidedNBV:
             return ViewPlan(poses, q, gain, False, "", target=target, frontier=frontier_xyz, timings=timings)
         timings["plan_s"] = time.perf_counter() - t0
         return self._at_edges(state, ViewPlan(empty, np.zeros(0), np.zeros(0), True, reason, frontier=frontier_xyz,
-                                              timings=timings))
+                                              timings=timings), occupied)
 
-    def _at_edges(self, state: ScanState, stop: ViewPlan) -> ViewPlan:
+    def _at_edges(self, state: ScanState, stop: ViewPlan, occupied: "nbv.OccupiedIndex") -> ViewPlan:
         """The grid's frontier is done: a view of the open paint (planners.open_edges), or the stop."""
         if self.edges is None:
             return stop
-        plan, last = self.edges.or_stop(state, self.book, stop.reason, stop.frontier, stop.timings)
+        plan, last = self.edges.or_stop(state, self.book, stop, occupied)
         if last is not None:
             self._last = last
         return plan

@@ -133,34 +133,32 @@ class EdgeViews:
     the candidates round it that look furthest round the edges (``round_the_edge``) of the group's
     points they frame and see past the occupied cells."""
 
-    def __init__(self, cfg: NBVConfig, radius_m: float):
+    def __init__(self, cfg: NBVConfig):
         self.cfg = cfg
-        self.radius = radius_m
         self._lattice = sphere_lattice(cfg.search_radius_m, cfg.min_standoff_m, cfg.candidate_spacing_m)
         self.looked_at: list[tuple[np.ndarray, np.ndarray]] = []  # (centre, way out) of each group planned for
 
-    def or_stop(self, state: ScanState, book, reason: str, frontier: np.ndarray,
-                timings: dict) -> tuple[ViewPlan, tuple | None]:
-        """The planner's grid frontier is done (``reason``): a view of the open paint, booked on
-        ``book`` (planners.targets.TargetBook) like any target, or the stop. Returns the plan and,
-        for a view, the planner's record of it (step, ranked eyes, the point each looks at)."""
+    def or_stop(self, state: ScanState, book, stop: ViewPlan,
+                occupied: nbv.OccupiedIndex | None = None) -> tuple[ViewPlan, tuple | None]:
+        """The planner's grid frontier is done (its ``stop`` plan): a view of the open paint, booked
+        on ``book`` (planners.targets.TargetBook) like any target, or ``stop`` itself. Returns the
+        plan and, for a view, the planner's record of it (step, ranked eyes, the point each looks at)."""
         t0 = time.perf_counter()
-        planned = self.plan(state)
-        timings["edges_s"] = time.perf_counter() - t0
+        planned = self.plan(state, occupied)
+        stop.timings["edges_s"] = time.perf_counter() - t0
         if planned is None:
-            return ViewPlan(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), True, reason, frontier=frontier,
-                            timings=timings), None
+            return stop, None
         poses, q, gain, target = planned
         book.planned(state, target)
         last = (state.step, poses[:, :3, 3], np.broadcast_to(target, (len(poses), 3)))
-        return ViewPlan(poses, q, gain, False, "", target=target, frontier=frontier, timings=timings), last
+        return ViewPlan(poses, q, gain, False, "", target=target, frontier=stop.frontier, timings=stop.timings), last
 
     def plan(self, state: ScanState, occupied: nbv.OccupiedIndex | None = None):
         """(poses, Q, gain, target) ranked best first, or None when no group is left to look at."""
         cfg, grid = self.cfg, state.grid
         if len(state.drawing) == 0:
             return None
-        edges = open_paint_edges(state.drawing.xyz, state.drawing.origin, state.surface.xyz, self.radius)
+        edges = open_paint_edges(state.drawing.xyz, state.drawing.origin, state.surface.xyz, cfg.open_edge_radius_m)
         groups = edge_clusters(edges, 1.5 * grid.voxel, cfg.min_frontier_cluster, grid.voxel)
         cents = [edges.xyz[g].mean(axis=0) for g in groups]
         ways = [edges.outward[g].mean(axis=0) for g in groups]

@@ -93,7 +93,7 @@ class NozzleCheck:
         d, _ = self.tree.query(flat, distance_upper_bound=float(reach.max()))
         clear = (d.reshape(centres.shape[:-1]) > reach).all(axis=-1)
         if not clear.all():  # the balls are a broad phase: the torch's own shape decides
-            clear[~clear] = self._solid_clear(tips[~clear], axes[~clear])
+            clear[~clear] = self._solid_clear(tips[~clear], axes[~clear], centres[~clear])
         head = self.head
         if self.unseen is not None and head.any():
             reach = self.radii[head] + self.margin + self.cell_reach
@@ -101,11 +101,12 @@ class NozzleCheck:
             clear &= (d.reshape(centres.shape[:-2] + (int(head.sum()),)) > reach).all(axis=-1)
         return clear
 
-    def _solid_clear(self, tips: np.ndarray, axes: np.ndarray) -> np.ndarray:
-        """(M,) bool for tips and axes (M,3): no surface point within ``margin_m`` of the torch's
-        solid (``frustum_distance``), among the points the balls (dilated by the margin) hold."""
+    def _solid_clear(self, tips: np.ndarray, axes: np.ndarray, centres: np.ndarray) -> np.ndarray:
+        """(M,) bool for tips and axes (M,3) and their ball centres (M,K,3): no surface point within
+        ``margin_m`` of the torch's solid (``frustum_distance``), among the points the balls (dilated
+        by the margin) hold."""
         K = len(self.offsets)
-        centres = (tips[:, None, :] - self.offsets[:, None] * axes[:, None, :]).reshape(-1, 3)
+        centres = centres.reshape(-1, 3)
         reach = np.tile(self.radii + self.margin, len(tips))
         counts = self.tree.query_ball_point(centres, reach, return_length=True)
         near = self.tree.query_ball_point(centres, reach, return_sorted=False)
