@@ -120,6 +120,9 @@ class NBVConfig(_Strict):
                                "within which paint must have seen surface all round to be sealed")
     end_radius_m: float = Field(0.05, gt=0.005, le=0.3, description="drawing within this of the cluster gives its direction")
     end_min_points: int = Field(40, ge=1, le=100_000, description="surface points (2 mm apart) that tube must hold")
+    line_prior_m: float = Field(0.0, ge=0.0, le=0.5, description="G-NBV: where the surface round the drawing is a "
+                                "cylinder, candidates are ranked first by how much of the line's continuation this "
+                                "far past its ends they would image (planners.line_prior); 0: off")
     observed_known: bool = Field(True, description="a cell observed occupied or free carries no information "
                                  "about the drawing (its colour was seen with it): only unknown cells count in eq. 5")
     footprint_gain: bool = Field(False, description="G-NBV: each ray counts the cells its share of the image covers "

@@ -11,6 +11,7 @@ import numpy as np
 from planners import nbv
 from planners.base import ScanState, ViewPlan
 from planners.config import PlannersConfig
+from planners.line_prior import LinePrior, line_prior, seen_counts
 from planners.open_edges import EdgeViews
 from planners.targets import TargetBook, framing
 from planners.views import look_at_rotations, poses_from, sphere_lattice
@@ -25,6 +26,7 @@ class GuidedNBV:
         self.book = TargetBook(cfg)
         self._first_gain: float | None = None  # the scale of a useful view, for the stop rule
         self._last: tuple | None = None  # (step, ranked eyes, their targets) of a joint plan
+        self._prior: LinePrior | None = None  # this step's line prior, when the surface is a cylinder
         self.edges = EdgeViews(self.cfg) if "gnbv" in self.cfg.open_edge_views else None
 
     def reject(self, plan: ViewPlan) -> None:
@@ -74,11 +76,12 @@ class GuidedNBV:
         cost = np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1)
         gain = nbv.gains(grid, eyes, R, weights, p_free, state.K, state.image_size, cfg, cost, cfg.footprint_gain)
         q = nbv.quality(gain, cost, cfg.lam)
-        rank = np.argsort(-q, kind="stable")
+        rank, shows_line = self._rank(state, eyes, R, q, occupied)
         best = float(gain.max())
         if self._first_gain is None:
             self._first_gain = best
-        if best < max(cfg.min_gain, cfg.min_gain_fraction * self._first_gain) or q[rank[0]] < cfg.delta_q:
+        spent = best < max(cfg.min_gain, cfg.min_gain_fraction * self._first_gain) or q.max() < cfg.delta_q
+        if spent and not shows_line:
             return None
         return poses_from(eyes[rank], R[rank]), q[rank], gain[rank]
 
@@ -103,6 +106,10 @@ class GuidedNBV:
         order = np.argsort(np.linalg.norm(cents - cam, axis=1)) if len(cents) else np.zeros(0, int)
         p_free = nbv.visibility_field(grid, cfg)
         occupied = nbv.OccupiedIndex(grid)
+        self._prior = None
+        if cfg.line_prior_m > 0 and usable.any():
+            self._prior = line_prior(state.drawing.xyz, state.surface.xyz, state.surface.origin, grid,
+                                     cfg.line_prior_m, frontier_xyz[usable[lab]])
         if cfg.gain_all_frontier and usable.any():
             ranked = order[usable[order]]
             weights = nbv.cell_weights(grid, ijk[usable[lab]], cfg)  # every usable cluster's frontier
@@ -141,6 +148,35 @@ class GuidedNBV:
         timings["plan_s"] = time.perf_counter() - t0
         return self._at_edges(state, ViewPlan(empty, np.zeros(0), np.zeros(0), True, reason, frontier=frontier_xyz,
                                               timings=timings), occupied)
+
+    def _prior_seen(self, state: ScanState, eyes: np.ndarray, R: np.ndarray,
+                    occupied: "nbv.OccupiedIndex") -> np.ndarray | None:
+        """Per candidate: how many points of this step's line prior it would image (None: no prior)."""
+        if self._prior is None or len(eyes) == 0:
+            return None
+        return seen_counts(eyes, R, self._prior, state.K, state.image_size, self.cfg.max_range_m,
+                           self.cfg.max_view_angle_deg, state.grid, occupied.flat)
+
+    def _worth(self, seen: np.ndarray, state: ScanState) -> np.ndarray:
+        """As much of the line as a view must find to count as one that found drawing
+        (planners.growth): such a view is worth taking even when eq. 5's gain is spent, which
+        knows nothing of the line past p_φ's reach."""
+        return seen * self._prior.spacing >= self.cfg.min_view_growth_voxels * state.grid.voxel
+
+    def _shows_line(self, state: ScanState, eyes: np.ndarray, R: np.ndarray, occupied: "nbv.OccupiedIndex") -> np.ndarray:
+        seen = self._prior_seen(state, eyes, R, occupied)
+        return np.zeros(len(eyes), dtype=bool) if seen is None else self._worth(seen, state)
+
+    def _rank(self, state: ScanState, eyes: np.ndarray, R: np.ndarray, q: np.ndarray,
+              occupied: "nbv.OccupiedIndex") -> tuple[np.ndarray, bool]:
+        """Candidates best first: by Q (eq. 4); with a line prior (planners.line_prior), first by
+        how much of the line's likely continuation they would image, then by Q. And whether the
+        first one is worth taking for the line alone (``_worth``)."""
+        seen = self._prior_seen(state, eyes, R, occupied)
+        if seen is None:
+            return np.argsort(-q, kind="stable"), False
+        rank = np.lexsort((-q, -seen))
+        return rank, bool(self._worth(seen[rank[0]], state))
 
     def _at_edges(self, state: ScanState, stop: ViewPlan, occupied: "nbv.OccupiedIndex") -> ViewPlan:
         """The grid's frontier is done: a view of the open paint (planners.open_edges), or the stop."""
@@ -184,10 +220,11 @@ class GuidedNBV:
             if first is None and len(gain):
                 first = float(gain.max())
             floor = max(cfg.min_gain, cfg.joint_min_gain_fraction * (first or 0.0))
+            shows = self._shows_line(state, E, R, occupied)
             for c in list(todo):
                 m = owner == c
                 tier, normal, past = todo.pop(c)
-                if m.any() and gain[m].max() >= floor:
+                if m.any() and (gain[m].max() >= floor or shows[m].any()):
                     done.append((E[m], R[m], owner[m], gain[m], cost[m]))
                 elif tier + 1 < len(tiers):
                     todo[c] = (tier + 1, normal, past)
@@ -200,7 +237,7 @@ class GuidedNBV:
             return ViewPlan(empty, np.zeros(0), np.zeros(0), True, "quality", frontier=frontier_xyz, timings=timings)
         E, R, owner, gain, cost = (np.concatenate(parts) for parts in zip(*done))
         q = nbv.quality(gain, cost, cfg.lam)
-        rank = np.argsort(-q, kind="stable")
+        rank, _ = self._rank(state, E, R, q, occupied)
         looked_at = cl.cents[owner[rank]]
         self.book.planned(state, looked_at[0])
         self._last = (state.step, E[rank], looked_at)
