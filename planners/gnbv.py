@@ -7,6 +7,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from planners import nbv
 from planners.base import ScanState, ViewPlan
@@ -28,10 +29,27 @@ class GuidedNBV:
         self._last: tuple | None = None  # (step, ranked eyes, their targets) of a joint plan
         self._prior: LinePrior | None = None  # this step's line prior, when the surface is a cylinder
         self.edges = EdgeViews(self.cfg) if "gnbv" in self.cfg.open_edge_views else None
+        self._unreachable_eyes = np.zeros((0, 3))  # candidate positions the runner could not reach...
+        self._unreachable_for = np.zeros((0, 3))  # ...and the target each looked at
+        self._failed: dict[tuple, int] = {}  # target -> plans on it the runner could not reach
 
     def reject(self, plan: ViewPlan) -> None:
-        if plan.target is not None:
-            self.book.give_up(plan.target)
+        """The runner reached none of the candidates it tried (the capability map does not know the
+        piece: an arm behind a camera that looks past a pipe's branch hits the branch). Those poses
+        are not offered again, not the target: its candidates from other sides may be reachable.
+        A target whose candidates failed in two plans is given up, as C-NBV does."""
+        if plan.target is None:
+            return
+        k = max(plan.tried, 1)
+        eyes = plan.poses[:k, :3, 3]
+        owners = self._last[2][:k] if self._last is not None else np.broadcast_to(plan.target, eyes.shape)
+        self._unreachable_eyes = np.vstack([self._unreachable_eyes, eyes])
+        self._unreachable_for = np.vstack([self._unreachable_for, owners])
+        for c in np.unique(owners, axis=0):
+            key = tuple(np.round(c, 4))
+            self._failed[key] = self._failed.get(key, 0) + 1
+            if self._failed[key] >= 2:
+                self.book.give_up(c)
 
     def _aim_point(self, state: ScanState, target: np.ndarray) -> np.ndarray:
         """Where the candidates look: the frontier centroid, or a little past it in the direction the
@@ -58,6 +76,7 @@ class GuidedNBV:
         cfg, grid = self.cfg, state.grid
         eyes = target + self._lattice
         eyes = eyes[nbv.feasible_eyes(grid, eyes, target, normal, cfg, past, cone_deg, occupied=occupied)]
+        eyes = eyes[~self._failed_here(eyes, target, grid.voxel)]
         if len(eyes) == 0:
             return eyes, np.zeros((0, 3, 3))
         R = look_at_rotations(eyes, self._aim_point(state, target))
@@ -65,6 +84,14 @@ class GuidedNBV:
             keep = state.reachable(eyes, R[:, :, 2])
             eyes, R = eyes[keep], R[keep]
         return eyes, R
+
+    def _failed_here(self, eyes: np.ndarray, target: np.ndarray, voxel: float) -> np.ndarray:
+        """Mask of candidate positions the runner could not reach for (nearly) this target."""
+        same = np.linalg.norm(self._unreachable_for - target, axis=1) < 6 * voxel
+        if not same.any() or len(eyes) == 0:
+            return np.zeros(len(eyes), dtype=bool)
+        d, _ = cKDTree(self._unreachable_eyes[same]).query(eyes, k=1)
+        return d < 1e-3
 
     def _score(self, state: ScanState, target: np.ndarray, normal: np.ndarray | None, cone_deg: float,
                weights, p_free: np.ndarray, occupied: "nbv.OccupiedIndex"):

@@ -244,6 +244,29 @@ def test_cnbv_keeps_targets_as_gnbv_does():
     assert np.linalg.norm(p2.poses[:, None, :3, 3] - gone[None], axis=2).min() > 1e-6
 
 
+@pytest.mark.parametrize("joint", [False, True])
+def test_gnbv_drops_poses_the_arm_could_not_reach_not_their_target(joint):
+    """The runner reached none of the first candidates: the next plan offers the same target from
+    the poses not yet tried; a second plan it cannot reach gives the target up (as C-NBV does)."""
+    from planners.gnbv import GuidedNBV
+
+    cfg, state = _state()
+    cfg = cfg.model_copy(update={"nbv": cfg.nbv.model_copy(update={"gain_all_frontier": joint})})
+    planner = GuidedNBV(cfg)
+    p1 = planner.next_view(state)
+    assert not p1.stop
+    p1.tried = 5
+    planner.reject(p1)
+    p2 = planner.next_view(state)
+    assert not p2.stop and np.linalg.norm(p2.target - p1.target) < 1e-9, "the same target"
+    gone = p1.poses[:5, :3, 3]
+    assert np.linalg.norm(p2.poses[:, None, :3, 3] - gone[None], axis=2).min() > 1e-6, "not from there"
+    assert np.allclose(p2.poses[0][:3, 3], p1.poses[5][:3, 3]), "the next one in line"
+    p2.tried = 5
+    planner.reject(p2)
+    assert any(np.linalg.norm(g - p1.target) < 1e-9 for g in planner.book.given_up)
+
+
 def test_framing_returns_the_views_whose_image_holds_the_target():
     from planners.targets import framing
 
