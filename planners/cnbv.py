@@ -39,7 +39,6 @@ class ConstrainedNBV:
         self._first_gain: float | None = None
         self._unreachable = np.zeros((0, 3))  # candidate positions the runner could not reach
         self._last: tuple | None = None  # (step, ranked candidate positions, the centroid each looks at)
-        self._failed: dict[tuple, int] = {}  # cluster centroid -> plans on it the runner could not reach
         self.edges = EdgeViews(self.cfg) if "cnbv" in self.cfg.open_edge_views else None
 
     def reject(self, plan: ViewPlan) -> None:
@@ -51,13 +50,7 @@ class ConstrainedNBV:
         if len(tried):
             self._unreachable = np.vstack([self._unreachable, tried])
         if self._last is not None:
-            # A cluster whose candidates failed in two plans is given up, as G-NBV gives up a target
-            # at once: what is left of it is seen only from where the arm does not go.
-            for c in np.unique(self._last[2][:k], axis=0):
-                key = tuple(np.round(c, 4))
-                self._failed[key] = self._failed.get(key, 0) + 1
-                if self._failed[key] >= 2:
-                    self.book.give_up(c)
+            self.book.unreachable(self._last[2][:k])
 
     def _repeats(self, eyes: np.ndarray, owner: np.ndarray, cents: np.ndarray, state: ScanState) -> np.ndarray:
         """Mask of candidates that would look at their cluster from (nearly) the direction of a view

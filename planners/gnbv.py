@@ -31,13 +31,12 @@ class GuidedNBV:
         self.edges = EdgeViews(self.cfg) if "gnbv" in self.cfg.open_edge_views else None
         self._unreachable_eyes = np.zeros((0, 3))  # candidate positions the runner could not reach...
         self._unreachable_for = np.zeros((0, 3))  # ...and the target each looked at
-        self._failed: dict[tuple, int] = {}  # target -> plans on it the runner could not reach
 
     def reject(self, plan: ViewPlan) -> None:
         """The runner reached none of the candidates it tried (the capability map does not know the
         piece: an arm behind a camera that looks past a pipe's branch hits the branch). Those poses
         are not offered again, not the target: its candidates from other sides may be reachable.
-        A target whose candidates failed in two plans is given up, as C-NBV does."""
+        The book gives a target up when a second plan on it fails (``TargetBook.unreachable``)."""
         if plan.target is None:
             return
         k = max(plan.tried, 1)
@@ -45,11 +44,7 @@ class GuidedNBV:
         owners = self._last[2][:k] if self._last is not None else np.broadcast_to(plan.target, eyes.shape)
         self._unreachable_eyes = np.vstack([self._unreachable_eyes, eyes])
         self._unreachable_for = np.vstack([self._unreachable_for, owners])
-        for c in np.unique(owners, axis=0):
-            key = tuple(np.round(c, 4))
-            self._failed[key] = self._failed.get(key, 0) + 1
-            if self._failed[key] >= 2:
-                self.book.give_up(c)
+        self.book.unreachable(owners)
 
     def _aim_point(self, state: ScanState, target: np.ndarray) -> np.ndarray:
         """Where the candidates look: the frontier centroid, or a little past it in the direction the

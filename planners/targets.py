@@ -38,9 +38,20 @@ class TargetBook:
         self.given_up: list[np.ndarray] = []  # targets that proved unreachable or without gain
         self.fruitless: list[np.ndarray] = []  # targets whose view found no drawing (once)
         self._growth = GrowthWatch(self.cfg.min_view_growth_voxels)
+        self._failed: dict[tuple, int] = {}  # target -> plans on it the runner could not reach
 
     def give_up(self, target: np.ndarray) -> None:
         self.given_up.append(np.asarray(target, dtype=np.float64))
+
+    def unreachable(self, targets: np.ndarray) -> None:
+        """The runner reached none of a plan's candidates, which looked at ``targets`` (one row per
+        candidate tried). A target whose candidates failed in two plans is given up: what is left
+        of it is seen only from where the arm does not go."""
+        for c in np.unique(np.asarray(targets, dtype=np.float64).reshape(-1, 3), axis=0):
+            key = tuple(np.round(c, 4))
+            self._failed[key] = self._failed.get(key, 0) + 1
+            if self._failed[key] >= 2:
+                self.give_up(c)
 
     def planned(self, state: ScanState, target: np.ndarray) -> None:
         """Book the plan's target. A replan within the same step (the runner reached none of the
