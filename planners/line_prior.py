@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 from planners import raycast
 from planners.cutpath.geometry import Surface
 from planners.grid import OccupancyGrid
+from planners.views import in_image
 
 #: surface points (within ``reach`` of the drawing) the fit uses, at most; a fixed draw, repeatable
 FIT_POINTS = 4000
@@ -154,22 +155,10 @@ def seen_counts(eyes: np.ndarray, rotations: np.ndarray, prior: LinePrior, K: np
     frame and range, within ``max_incidence_deg`` of their normal, with no occupied cell on the
     way (the last two cells before a point are its own surface)."""
     P, N = prior.xyz, prior.normals
-    q = np.einsum("cij,cpi->cpj", rotations, P[None, :, :] - eyes[:, None, :])  # optical frame
-    z = q[..., 2]
-    zs = np.maximum(z, 1e-9)
-    u = K[0, 0] * q[..., 0] / zs + K[0, 2]
-    v = K[1, 1] * q[..., 1] / zs + K[1, 2]
-    w, h = image_size
+    _, framed = in_image(eyes, rotations, P, K, image_size)
     view = eyes[:, None, :] - P[None, :, :]
     dist = np.linalg.norm(view, axis=2)
     facing = np.einsum("cpj,pj->cp", view, N) > np.cos(np.deg2rad(max_incidence_deg)) * dist
-    ok = (z > 0) & (dist < max_range) & (u >= 0) & (u < w) & (v >= 0) & (v < h) & facing
-    c, p = np.nonzero(ok)
-    if len(c) == 0:
-        return np.zeros(len(eyes), dtype=np.int64)
-    start, end = eyes[c], P[p]
-    L = dist[c, p][:, None]
-    stop = start + (end - start) * np.clip((L - 2 * grid.voxel) / np.maximum(L, 1e-9), 0, 1)
-    blocked = raycast.segments_blocked(np.ascontiguousarray(start), np.ascontiguousarray(stop), grid.lo, grid.voxel,
-                                       np.asarray(grid.shape, dtype=np.int64), occupied_flat)
-    return np.bincount(c[~blocked], minlength=len(eyes))
+    seen = raycast.clear_sight(eyes, P, framed & (dist < max_range) & facing, 2 * grid.voxel, grid.lo, grid.voxel,
+                               grid.shape, occupied_flat)
+    return seen.sum(axis=1)

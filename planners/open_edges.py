@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from planners import nbv, raycast
 from planners.base import ScanState, ViewPlan
 from planners.config import NBVConfig
-from planners.views import look_at_rotations, poses_from, sphere_lattice
+from planners.views import in_image, look_at_rotations, poses_from, sphere_lattice
 
 #: centroid shift (share of the radius) halfway between a surface's inside (0) and its edge (0.42)
 EDGE_SHIFT = 2.0 / (3.0 * np.pi)
@@ -200,20 +200,8 @@ class EdgeViews:
         """(C,) summed ``round_the_edge`` over the open points each candidate frames and sees."""
         grid = state.grid
         more = round_the_edge(eyes, pts, origins)  # (C, M)
-        rel = pts.xyz[None, :, :] - eyes[:, None, :]
-        cam = np.einsum("cji,cmj->cmi", R, rel)  # R^T (p - e): camera frame
-        z = cam[..., 2]
-        u = state.K[0, 0] * cam[..., 0] / np.maximum(z, 1e-9) + state.K[0, 2]
-        v = state.K[1, 1] * cam[..., 1] / np.maximum(z, 1e-9) + state.K[1, 2]
-        w, h = state.image_size
-        framed = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h) & (z < self.cfg.max_range_m)
-        ci, mi = np.nonzero(framed & (more > 0))
-        if len(ci):
-            start = eyes[ci]
-            d = pts.xyz[mi] - start
-            L = np.linalg.norm(d, axis=1, keepdims=True)
-            stop = start + d * np.clip((L - 1.5 * grid.voxel) / np.maximum(L, 1e-9), 0, 1)  # short of the point's own cell
-            blocked = raycast.segments_blocked(np.ascontiguousarray(start), np.ascontiguousarray(stop), grid.lo,
-                                               grid.voxel, np.asarray(grid.shape, dtype=np.int64), occupied.flat)
-            framed[ci[blocked], mi[blocked]] = False
-        return np.where(framed, more, 0.0).sum(axis=1)
+        z, framed = in_image(eyes, R, pts.xyz, state.K, state.image_size)
+        framed &= z < self.cfg.max_range_m
+        seen = raycast.clear_sight(eyes, pts.xyz, framed & (more > 0), 1.5 * grid.voxel, grid.lo, grid.voxel,
+                                   grid.shape, occupied.flat)  # short of the point's own cell
+        return np.where(seen, more, 0.0).sum(axis=1)

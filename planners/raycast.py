@@ -251,6 +251,23 @@ def segments_blocked(starts, ends, lo, voxel, shape, blocked):
     return out
 
 
+def clear_sight(eyes: np.ndarray, points: np.ndarray, pairs: np.ndarray, short_m: float, lo: np.ndarray,
+                voxel: float, shape, occupied_flat: np.ndarray) -> np.ndarray:
+    """``pairs`` (C, M, bool: eye c sees point m) less those whose segment, stopped ``short_m``
+    before the point (its own surface's cells), crosses an occupied cell."""
+    out = pairs.copy()
+    ci, mi = np.nonzero(out)
+    if len(ci):
+        start = eyes[ci]
+        d = points[mi] - start
+        L = np.linalg.norm(d, axis=1, keepdims=True)
+        stop = start + d * np.clip((L - short_m) / np.maximum(L, 1e-9), 0, 1)
+        blocked = segments_blocked(np.ascontiguousarray(start), np.ascontiguousarray(stop), lo, voxel,
+                                   np.asarray(shape, dtype=np.int64), occupied_flat)
+        out[ci[blocked], mi[blocked]] = False
+    return out
+
+
 def warmup() -> None:
     """Compile (or load from numba's cache) every kernel before the first timed planning step."""
     lo = np.zeros(3)

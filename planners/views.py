@@ -77,3 +77,16 @@ def surface_normal(points: np.ndarray, center: np.ndarray, radius: float, toward
     if np.dot(n, toward - center) < 0:
         n = -n
     return n / np.linalg.norm(n)
+
+
+def in_image(eyes: np.ndarray, rotations: np.ndarray, points: np.ndarray, K: np.ndarray,
+             image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(C, M) depth of each point along each camera's axis (eyes (C,3), R_base_cam (C,3,3)), and
+    whether it lands in that camera's image in front of it."""
+    cam = np.einsum("cji,cmj->cmi", rotations, points[None, :, :] - eyes[:, None, :])  # R^T (p - e)
+    z = cam[..., 2]
+    zs = np.maximum(z, 1e-9)
+    u = K[0, 0] * cam[..., 0] / zs + K[0, 2]
+    v = K[1, 1] * cam[..., 1] / zs + K[1, 2]
+    w, h = image_size
+    return z, (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
