@@ -51,8 +51,7 @@ def test_a_noisy_pipe_fits_its_cylinder_and_an_angle_bracket_does_not():
 def _pipe_state(seen_to_y: float = 0.0):
     """The pipe seen from above for y in [-0.3, seen_to_y], its line painted on it; the rest of
     the pipe unknown to the grid."""
-    from planners.base import ScanState
-    from planners.clouds import Cloud
+    from painted_state import painted_state
 
     cfg = PlannersConfig()
     grid = OccupancyGrid(cfg.grid)
@@ -60,15 +59,7 @@ def _pipe_state(seen_to_y: float = 0.0):
     pts, th, y = _pipe((-60, 60), (-0.3, seen_to_y), step=0.003)
     grid.integrate(cam, pts.astype(np.float32))
     paint = np.abs(R_PIPE * (th - _line_theta(y))) <= 0.01
-    origin = np.broadcast_to(cam, pts.shape).astype(np.float32).copy()
-    rgb = np.where(paint[:, None], [220, 20, 20], [120, 120, 120]).astype(np.uint8)
-    surface = Cloud(pts.astype(np.float32), rgb, origin)
-    drawing = surface.select(paint)
-    grid.set_drawing(drawing.xyz)
-    T = np.eye(4)
-    T[:3, :3] = look_at_rotations(cam[None], np.array([[AXIS_X, -0.15, AXIS_Z + R_PIPE]]))[0]
-    T[:3, 3] = cam
-    return cfg, ScanState(0, grid, surface, drawing, surface, T, T, K, SIZE, cam[None])
+    return cfg, painted_state(grid, pts, paint, cam, np.array([AXIS_X, -0.15, AXIS_Z + R_PIPE]), K, SIZE)
 
 
 def test_the_line_goes_on_along_its_helix_into_the_unknown():

@@ -81,11 +81,10 @@ def _rod_state():
     """A 16 mm rod across the table at z = 0.15 seen from above, its paint ending at the flanks
     where the camera's view of the rod ended (60 deg round each side); every other cell of the grid
     observed: the grid's frontier has nothing left."""
-    from planners.base import ScanState
-    from planners.clouds import Cloud
+    from painted_state import painted_state
+
     from planners.config import PlannersConfig
     from planners.grid import OccupancyGrid
-    from planners.views import look_at_rotations
 
     cfg = PlannersConfig()
     grid = OccupancyGrid(cfg.grid)
@@ -95,16 +94,8 @@ def _rod_state():
     grid.integrate(cam, rod.astype(np.float32))
     grid.logodds[grid.logodds == 0] = -2.0  # the rest observed free: no frontier
     paint = np.abs(rod[:, 0] - 0.45) <= 0.0125
-    origin = np.broadcast_to(cam, rod.shape).astype(np.float32).copy()
-    rgb = np.where(paint[:, None], [220, 20, 20], [120, 120, 120]).astype(np.uint8)
-    surface = Cloud(rod.astype(np.float32), rgb, origin)
-    drawing = surface.select(paint)
-    grid.set_drawing(drawing.xyz)
-    T = np.eye(4)
-    T[:3, :3] = look_at_rotations(cam[None], np.array([[0.45, 0.0, 0.15]]))[0]
-    T[:3, 3] = cam
     K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
-    return cfg, ScanState(1, grid, surface, drawing, surface, T, T, K, (320, 240), np.vstack([cam, cam]))
+    return cfg, painted_state(grid, rod, paint, cam, np.array([0.45, 0.0, 0.15]), K, (320, 240), step=1)
 
 
 def test_cnbv_looks_round_the_rod_when_the_grid_frontier_is_done():
