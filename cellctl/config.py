@@ -29,6 +29,8 @@ class MotionConfig(BaseModel):
     motion_budget_s: float = Field(60.0, gt=0, le=600, description="safety net: motion planning time per target before it is "
                                    "given up")
     retract_m: float = Field(0.10, ge=0, le=0.5, description="back-off along the optical axis for via waypoints")
+    framed_views: bool = Field(False, description="a scan view keeps the planned roll about the optical axis (or its "
+                               "half turn) when the arm reaches it, else any roll: the image is 87 x 58 deg")
     park_q: tuple[float, float, float, float, float, float, float] | None = Field(
         None, description="joints of a clear pose above the cell, the last via (default: the twin's home)")
 

@@ -147,7 +147,7 @@ class ScanJob:
                                         speed_factor=mcfg.speed_factor, ik_margin_rad=mcfg.ik_margin_rad,
                                         ik_seeds=mcfg.ik_seeds, retract_m=mcfg.retract_m,
                                         via_candidates=mcfg.via_candidates, budget_s=mcfg.motion_budget_s,
-                                        park_q=None if park is None else np.asarray(park, dtype=np.float64))
+                                        framed=mcfg.framed_views, park_q=None if park is None else np.asarray(park, dtype=np.float64))
         self.last_via = ""
         self._scene_stale = True  # the collision scene lags the grid until the next move
         self.recorder = recorder

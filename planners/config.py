@@ -123,6 +123,8 @@ class NBVConfig(_Strict):
     line_prior_m: float = Field(0.0, ge=0.0, le=0.5, description="G-NBV: where the surface round the drawing is a "
                                 "cylinder, candidates are ranked first by how much of the line's continuation this "
                                 "far past its ends they would image (planners.line_prior); 0: off")
+    frame_line: bool = Field(False, description="G-NBV: each candidate is rolled about its optical axis so the image's "
+                             "wide axis lies along the drawing at its target (the line runs on past its ends)")
     observed_known: bool = Field(True, description="a cell observed occupied or free carries no information "
                                  "about the drawing (its colour was seen with it): only unknown cells count in eq. 5")
     footprint_gain: bool = Field(False, description="G-NBV: each ray counts the cells its share of the image covers "

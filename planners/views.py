@@ -24,6 +24,24 @@ def look_at_rotations(eyes: np.ndarray, targets: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z], axis=2)
 
 
+def roll_along(rotations: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """The same optical axes, each rolled so the image's wide axis (x: 87 of the D435's 87 x 58 deg)
+    lies along ``directions`` (C,3) as seen by that camera, image up kept toward world up. A
+    direction (nearly) along the optical axis leaves that rotation as it was."""
+    R = np.array(rotations, dtype=np.float64)
+    z = R[:, :, 2]
+    d = np.broadcast_to(np.asarray(directions, dtype=np.float64), z.shape)
+    dp = d - np.sum(d * z, axis=1, keepdims=True) * z
+    n = np.linalg.norm(dp, axis=1)
+    ok = n > 0.2 * np.maximum(np.linalg.norm(d, axis=1), 1e-12)
+    x = dp[ok] / n[ok, None]
+    y = np.cross(z[ok], x)
+    flip = (y @ WORLD_UP) > 0  # image up (-y) toward world up
+    x[flip], y[flip] = -x[flip], -y[flip]
+    R[ok, :, 0], R[ok, :, 1] = x, y
+    return R
+
+
 def poses_from(eyes: np.ndarray, rotations: np.ndarray) -> np.ndarray:
     T = np.tile(np.eye(4), (len(eyes), 1, 1))
     T[:, :3, :3] = rotations

@@ -481,3 +481,35 @@ def test_gnbv_takes_the_view_that_shows_both_ends_and_books_the_one_it_took():
     state.viewpoints = np.vstack([state.viewpoints, plan.poses[other][:3, 3]])
     planner.next_view(state)
     assert np.allclose(planner.book.targets[0], owners[other])
+
+
+def test_roll_along_turns_the_wide_axis_onto_a_direction_and_keeps_the_optical_axis():
+    from planners.views import roll_along
+
+    eyes = np.array([[0.4, 0.0, 0.5], [0.4, -0.4, 0.2], [0.8, 0.3, 0.3]])
+    R = look_at_rotations(eyes, np.array([0.5, 0.0, 0.1]))
+    d = np.array([0.0, 1.0, 0.0])
+    out = roll_along(R, d)
+    assert np.allclose(out[:, :, 2], R[:, :, 2])
+    assert np.allclose(np.einsum("cij,cik->cjk", out, out), np.eye(3), atol=1e-9)
+    assert np.allclose(np.linalg.det(out), 1.0)
+    proj = d - (out[:, :, 2] @ d)[:, None] * out[:, :, 2]
+    proj /= np.linalg.norm(proj, axis=1, keepdims=True)
+    assert np.allclose(np.abs(np.sum(out[:, :, 0] * proj, axis=1)), 1.0)  # x along the direction's image
+    assert np.all(out[:, :, 1] @ np.array([0.0, 0.0, 1.0]) <= 1e-9)  # image up toward world up
+    along_axis = roll_along(R[:1], R[0, :, 2])  # a direction along the optical axis: no roll defined
+    assert np.allclose(along_axis, R[:1])
+
+
+def test_gnbv_framing_the_line_puts_the_stripe_along_the_image_s_wide_axis():
+    from planners.gnbv import GuidedNBV
+
+    cfg, state = _state()
+    cfg = cfg.model_copy(update={"nbv": cfg.nbv.model_copy(update={"frame_line": True})})
+    plan = GuidedNBV(cfg).next_view(state)
+    x = plan.poses[:10, :3, 0]
+    z = plan.poses[:10, :3, 2]
+    stripe = np.array([0.0, 1.0, 0.0])
+    seen = stripe - (z @ stripe)[:, None] * z  # the stripe's direction in each image plane
+    seen /= np.linalg.norm(seen, axis=1, keepdims=True)
+    assert np.all(np.abs(np.sum(x * seen, axis=1)) > 0.999)

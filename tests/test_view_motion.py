@@ -114,3 +114,47 @@ def test_returns_on_the_arm_are_recognised(robot):
     assert mask.tolist() == [True, False, False]
     with pytest.raises(ValueError):
         robot.on_robot(np.zeros((3, 2)), HOME)
+
+
+def _roll_deg(R_got: np.ndarray, R_want: np.ndarray) -> float:
+    """Angle between the image x axes, modulo the half turn (the image frames the same rectangle)."""
+    c = abs(float(R_got[:, 0] @ R_want[:, 0]))
+    return math.degrees(math.acos(min(c, 1.0)))
+
+
+def test_a_framed_scan_view_keeps_the_planned_roll_and_a_free_one_need_not(robot):
+    """The D435's image is 87 x 58 deg: the roll the planner scored is the one the arm must take."""
+    kin = Kinematics(URDF, PANDA_JOINT_NAMES, "panda_hand", hand_eye(), lower=PANDA_Q_MIN, upper=PANDA_Q_MAX)
+    T = view([0.45, 0.25, 0.45], [0.55, 0.0, 0.1])[0]
+    rolled = T.copy()
+    rolled[:3, :3] = T[:3, :3] @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # a quarter turn
+    got = {}
+    for framed in (False, True):
+        mp = ViewMotionPlanner(kin, PANDA_MAX_VELOCITY, PANDA_MAX_ACCELERATION, PANDA_MAX_JERK, CollisionChecker(robot),
+                               park_q=HOME, framed=framed)
+        for name, want in (("planned", T), ("rolled", rolled)):
+            T_end = kin.fk(mp.plan(HOME, want[None]).path.positions[-1])
+            assert np.linalg.norm(T_end[:3, 3] - want[:3, 3]) < 1e-3
+            got[framed, name] = _roll_deg(T_end[:3, :3], want[:3, :3])
+    assert got[True, "planned"] < 0.5 and got[True, "rolled"] < 0.5
+    # free roll: IK stays near the start's roll, so at most one of two rolls 90 deg apart comes out as asked
+    assert max(got[False, "planned"], got[False, "rolled"]) > 30.0
+
+
+def test_a_framed_view_the_arm_cannot_roll_to_falls_back_to_any_roll(robot):
+    kin = Kinematics(URDF, PANDA_JOINT_NAMES, "panda_hand", hand_eye(), lower=PANDA_Q_MIN, upper=PANDA_Q_MAX)
+    lo, hi = kin.lower.copy(), kin.upper.copy()
+    lo[6], hi[6] = HOME[6] - 0.3, HOME[6] + 0.3  # the wrist may barely turn: most rolls are out of reach
+    tight = Kinematics(URDF, PANDA_JOINT_NAMES, "panda_hand", hand_eye(), lower=lo, upper=hi)
+    mp = ViewMotionPlanner(tight, PANDA_MAX_VELOCITY, PANDA_MAX_ACCELERATION, PANDA_MAX_JERK, CollisionChecker(robot),
+                           park_q=HOME, framed=True)
+    T = view([0.45, 0.25, 0.45], [0.55, 0.0, 0.1])[0]
+    rolls = []
+    for a in np.radians(np.arange(0, 180, 30)):
+        R = T[:3, :3] @ np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        want = T.copy()
+        want[:3, :3] = R
+        T_end = tight.fk(mp.plan(HOME, want[None]).path.positions[-1])  # always reached...
+        assert np.linalg.norm(T_end[:3, 3] - want[:3, 3]) < 1e-3 and T_end[:3, 2] @ want[:3, 2] > 0.9999
+        rolls.append(_roll_deg(T_end[:3, :3], R))
+    assert min(rolls) < 0.5 and max(rolls) > 20.0  # ...as asked where the wrist allows, else at another roll

@@ -22,6 +22,7 @@ from planners.motion.trajectory import JointPath, plan_through
 
 
 ESCAPE_M = 0.05  # a start in collision must come free within this much camera travel
+HALF_TURN = np.diag([-1.0, -1.0, 1.0, 1.0])  # a roll of 180 deg about the optical axis
 
 
 @dataclass
@@ -50,7 +51,7 @@ class ViewMotionPlanner:
                  *, speed_factor: float = 0.5, ik_margin_rad: float = 0.05, ik_seeds: int = 6,
                  retract_m: float = 0.10, park_q: np.ndarray | None = None, max_joint_step_rad: float = math.radians(1.0),
                  max_tcp_step_m: float = 0.01, via_candidates: int = 8, budget_s: float = 60.0,
-                 free_roll: bool = True):
+                 free_roll: bool = True, framed: bool = False):
         if not (math.isfinite(retract_m) and 0 <= retract_m <= 0.5):
             raise ValueError(f"retract_m must be in [0, 0.5] m, got {retract_m!r}")
         self.kin, self.checker = kin, checker
@@ -64,19 +65,25 @@ class ViewMotionPlanner:
         # scan's outcome depend on the machine's load.
         self.via_candidates, self.budget_s = int(via_candidates), float(budget_s)
         self.last_collision: Collision | None = None
-        # a scan view leaves the roll about the optical axis to IK; a calibration view needs it as asked
+        # a calibration view needs the roll as asked (free_roll False). A scan view (framed) asks for
+        # the planned roll or its half turn, which frame the same rectangle, and else any roll:
+        # the D435's image is 87 x 58 deg, so the roll decides how much of a line fits in it.
         self.free_roll = bool(free_roll)
+        self.framed = bool(framed) and self.free_roll
 
     # ------------------------------------------------------------------ pieces
     def _free(self, q: np.ndarray) -> bool:
         return self.checker is None or not self.checker.in_collision(q)
 
     def _ik(self, T: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
-        try:
-            return solve_camera_ik(self.kin, T, seed, free_roll=self.free_roll, margin=self.margin, seeds=self.seeds,
-                                   accept=self._free).q
-        except Unreachable:
-            return None
+        tries = [(T, False), (T @ HALF_TURN, False), (T, True)] if self.framed else [(T, self.free_roll)]
+        for T_try, free in tries:
+            try:
+                return solve_camera_ik(self.kin, T_try, seed, free_roll=free, margin=self.margin, seeds=self.seeds,
+                                       accept=self._free).q
+            except Unreachable:
+                continue
+        return None
 
     def _path(self, waypoints: list[np.ndarray]) -> JointPath:
         v, a, j = self.limits
