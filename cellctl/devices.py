@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import sys
 import threading
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
@@ -204,12 +205,24 @@ class Readiness:
         return "; ".join(parts)
 
 
+def module_available(name: str) -> bool:
+    """Whether ``name`` can be imported, without importing it. A job thread that is importing it
+    right now has put it in sys.modules without a spec yet, and find_spec then raises ValueError:
+    a status query at that moment answered internal_error (seen in the load test on a busy machine)."""
+    if name in sys.modules:
+        return True
+    try:
+        return find_spec(name) is not None
+    except ValueError:  # the import began between the two lines above
+        return name in sys.modules
+
+
 def check_readiness(cfg: CellConfig, arm_host: str | None = None) -> Readiness:
     """Never raises. sim: pybullet is there. fcisim: the franky-sim robot answers (``drivers.panda.probe``
     connects once) and the twin can render. real: the Franka answers and the configured D435 is
     connected with its modes (``drivers.realsense.check_devices``). Takes up to ``arm.connect_timeout_s``
     twice (TCP connect, then the handshake) for an unreachable robot."""
-    twin_ok = find_spec("pybullet") is not None
+    twin_ok = module_available("pybullet")
     twin_msg = "pybullet twin" if twin_ok else "pybullet is not installed (pip install -e .)"
     if cfg.mode == "sim":
         return Readiness(twin_ok, twin_ok, twin_msg, twin_msg)

@@ -19,7 +19,6 @@ import time
 from collections import deque
 from datetime import datetime, timezone
 from importlib import metadata
-from importlib.util import find_spec
 from pathlib import Path
 
 import zenoh
@@ -31,6 +30,7 @@ from cellctl.artifacts import _default as _json_default
 from cellctl.client import zenoh_error
 from cellctl.config import CellConfig, ServiceConfig
 from cellctl.devices import describe as describe_devices
+from cellctl.devices import module_available
 from cellctl.store import JobStore, StoreError, now_iso
 
 log = logging.getLogger("cellctl.service")
@@ -403,7 +403,7 @@ class CellService:
         if rd is None:  # sim (static), or before the first check
             from cellctl.devices import Readiness
 
-            ok = find_spec("pybullet") is not None
+            ok = module_available("pybullet")
             if self.cfg.mode == "sim":
                 return Readiness(ok, ok, "pybullet twin", "pybullet twin")
             return Readiness(False, False, "not checked yet", "not checked yet")

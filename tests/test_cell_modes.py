@@ -167,3 +167,22 @@ def test_the_twin_mirrors_joints_beyond_its_own_limits_and_refuses_junk():
         FrankySim("10.0.0.2")
     with pytest.raises(ValueError, match="7 joint angles"):
         FrankySim("127.0.0.1", [0.0] * 6)
+
+
+def test_a_module_being_imported_by_another_thread_counts_as_available(monkeypatch):
+    """A status query while a job thread imports pybullet for the first time: the module sits in
+    sys.modules without a spec, importlib's find_spec raises, and the service answered internal_error."""
+    import importlib.util
+    import sys
+    import types
+
+    from cellctl.devices import module_available
+
+    half = types.ModuleType("scrapcell_half_imported")
+    half.__spec__ = None  # what a C extension's module looks like while its import runs
+    monkeypatch.setitem(sys.modules, "scrapcell_half_imported", half)
+    with pytest.raises(ValueError):
+        importlib.util.find_spec("scrapcell_half_imported")
+    assert module_available("scrapcell_half_imported")
+    assert module_available("numpy")
+    assert not module_available("scrapcell_no_such_module")
