@@ -158,3 +158,30 @@ def test_a_framed_view_the_arm_cannot_roll_to_falls_back_to_any_roll(robot):
         assert np.linalg.norm(T_end[:3, 3] - want[:3, 3]) < 1e-3 and T_end[:3, 2] @ want[:3, 2] > 0.9999
         rolls.append(_roll_deg(T_end[:3, :3], R))
     assert min(rolls) < 0.5 and max(rolls) > 20.0  # ...as asked where the wrist allows, else at another roll
+
+
+def test_a_framed_plan_prefers_a_lower_ranked_view_at_its_scored_roll(robot):
+    """The ranking holds for the image each pose was scored with: a better-ranked pose the wrist can
+    reach only at another roll is a different, unscored view."""
+    lo, hi = PANDA_Q_MIN.copy(), PANDA_Q_MAX.copy()
+    lo[6], hi[6] = HOME[6] - 0.3, HOME[6] + 0.3
+    tight = Kinematics(URDF, PANDA_JOINT_NAMES, "panda_hand", hand_eye(), lower=lo, upper=hi)
+    args = (tight, PANDA_MAX_VELOCITY, PANDA_MAX_ACCELERATION, PANDA_MAX_JERK, CollisionChecker(robot))
+    exact = ViewMotionPlanner(*args, park_q=HOME, free_roll=False)
+    T = view([0.45, 0.25, 0.45], [0.55, 0.0, 0.1])[0]
+    rolled, at_roll = [], []
+    for a in np.radians(np.arange(0, 180, 15)):
+        want = T.copy()
+        want[:3, :3] = T[:3, :3] @ np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        rolled.append(want)
+        half = want @ np.diag([-1.0, -1.0, 1.0, 1.0])
+        at_roll.append(any(exact._ik(P, HOME) is not None for P in (want, half)))
+    at_roll = np.array(at_roll)
+    assert at_roll.any() and not at_roll.all()  # the limited wrist reaches some rolls, not all
+    order = np.concatenate([np.flatnonzero(~at_roll), np.flatnonzero(at_roll)])  # the unreachable ones ranked first
+    poses = np.array(rolled)[order]
+    free = ViewMotionPlanner(*args, park_q=HOME).plan(HOME, poses)
+    framed = ViewMotionPlanner(*args, park_q=HOME, framed=True).plan(HOME, poses)
+    assert free.index == 0  # any roll: the best-ranked pose, at a roll it was not scored at
+    assert framed.index == int((~at_roll).sum())  # the first pose reachable at its own roll (or half turn)
+    assert _roll_deg(tight.fk(framed.path.positions[-1])[:3, :3], poses[framed.index][:3, :3]) < 0.5

@@ -75,8 +75,11 @@ class ViewMotionPlanner:
     def _free(self, q: np.ndarray) -> bool:
         return self.checker is None or not self.checker.in_collision(q)
 
-    def _ik(self, T: np.ndarray, seed: np.ndarray) -> np.ndarray | None:
-        tries = [(T, False), (T @ HALF_TURN, False), (T, True)] if self.framed else [(T, self.free_roll)]
+    def _ik(self, T: np.ndarray, seed: np.ndarray, scored_roll: bool = False) -> np.ndarray | None:
+        """A collision-free configuration for camera pose T: with ``scored_roll`` at T's own roll or
+        its half turn (the image frames the same rectangle), else as the planner was built (any roll
+        for a scan view, T's roll for a calibration view)."""
+        tries = [(T, False), (T @ HALF_TURN, False)] if scored_roll else [(T, self.free_roll)]
         for T_try, free in tries:
             try:
                 return solve_camera_ik(self.kin, T_try, seed, free_roll=free, margin=self.margin, seeds=self.seeds,
@@ -118,7 +121,8 @@ class ViewMotionPlanner:
         routes = ("direct", "retract", "approach", "retract+approach") if self.retract_m > 0 else ("direct",)
         return routes + (("park",) if self.park_q is not None else ())
 
-    def _waypoints(self, route: str, q_now, q_goal, T_goal, memo: dict) -> list[np.ndarray] | None:
+    def _waypoints(self, route: str, q_now, q_goal, T_goal, memo: dict,
+                   scored_roll: bool = False) -> list[np.ndarray] | None:
         """Joint waypoints of a route, or None when one of its poses has no collision-free IK. The
         retract pose depends only on the start and is solved once per plan."""
         wps = [q_now]
@@ -131,19 +135,30 @@ class ViewMotionPlanner:
         if route == "park":
             wps.append(self.park_q)
         if "approach" in route:
-            q_app = self._ik(_backed_off(T_goal, self.retract_m), q_goal)
+            q_app = self._ik(_backed_off(T_goal, self.retract_m), q_goal, scored_roll)
             if q_app is None:
                 return None
             wps.append(q_app)
         return wps + [q_goal]
 
     def plan(self, q_now: np.ndarray, poses: np.ndarray) -> ViewMotion:
-        """The first of the ranked ``poses`` (M, 4, 4) with a clear motion from ``q_now``.
+        """The first of the ranked ``poses`` (M, 4, 4) with a clear motion from ``q_now``. A framed
+        planner first looks for one at the roll it was scored at (or its half turn): the planner's
+        ranking holds for that image, not for another roll of a better-ranked pose. Only if none
+        is reached so is any roll taken.
 
         Raises:
             Unreachable: no candidate has one; the message counts the reasons and names the first
                 collision found.
         """
+        if self.framed:
+            try:
+                return self._plan(q_now, poses, scored_roll=True)
+            except Unreachable:
+                pass
+        return self._plan(q_now, poses)
+
+    def _plan(self, q_now: np.ndarray, poses: np.ndarray, scored_roll: bool = False) -> ViewMotion:
         q_now = self.kin._vec(q_now, "q_now")
         P = np.asarray(poses, dtype=np.float64)
         if P.ndim != 3 or P.shape[1:] != (4, 4) or len(P) == 0:
@@ -162,7 +177,7 @@ class ViewMotionPlanner:
 
         def attempt(i: int, q_goal: np.ndarray, route: str) -> ViewMotion | None:
             t0 = time.perf_counter()
-            wps = self._waypoints(route, q_now, q_goal, P[i], memo)
+            wps = self._waypoints(route, q_now, q_goal, P[i], memo, scored_roll)
             clock["ik"] += time.perf_counter() - t0
             if wps is None:
                 return None
@@ -185,7 +200,7 @@ class ViewMotionPlanner:
                 rejected["not tried (time budget)"] = int(in_reach.sum()) - n_tried
                 break
             t0 = time.perf_counter()
-            q_goal = self._ik(P[i], q_now)
+            q_goal = self._ik(P[i], q_now, scored_roll)
             clock["ik"] += time.perf_counter() - t0
             if q_goal is None:
                 rejected["no collision-free IK"] += 1
