@@ -186,3 +186,16 @@ def test_a_module_being_imported_by_another_thread_counts_as_available(monkeypat
     assert module_available("scrapcell_half_imported")
     assert module_available("numpy")
     assert not module_available("scrapcell_no_such_module")
+
+
+def test_a_setting_given_twice_is_refused_with_both_lines(tmp_path):
+    """YAML keeps the last of two equal keys without a word: a cell ran unframed although its file
+    said `framed_views: true` a line above `framed_views: false`."""
+    text = (CONFIG_DIR / "cell.sim.yaml").read_text().replace("motion:\n", "motion:\n  framed_views: true\n", 1)
+    p = tmp_path / "cell.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError) as e:
+        load_cell_config(p)
+    msg = str(e.value)
+    first = text.splitlines().index("  framed_views: true") + 1
+    assert str(p) in msg and "duplicate key 'framed_views'" in msg and f"line {first}" in msg, msg

@@ -221,6 +221,7 @@ def test_user_scene_loads(plate_dir):
     (("[[-0.15, -0.05, 0.005], [0.0, 0.02, 0.005], [0.15, 0.06, 0.005]]", "[[0.0, 0.0, 0.005]]"),
      "drawing.polylines[0]", "at least 2"),
     (("name: tmp_plate", "name: [oops"), "invalid YAML", ""),
+    (("name: tmp_plate", "name: tmp_plate\nname: other_plate"), "invalid YAML", "duplicate key 'name'"),
 ])
 def test_invalid_user_scene(plate_dir, edit, field, message):
     text = PLATE_YAML.replace(*edit)

@@ -127,11 +127,11 @@ def load_realsense_config(path: str | Path) -> RealSenseConfig:
     import yaml
     from pydantic import ValidationError
 
-    from configs.loading import field_path, load_yaml_model
+    from configs.loading import field_path, load_yaml_model, safe_load
 
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = safe_load(path.read_text())
     except (OSError, yaml.YAMLError):
         data = None  # load_yaml_model reports it with the file name
     if isinstance(data, dict) and isinstance(data.get("camera"), dict) and "color_width" not in data:
