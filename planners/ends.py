@@ -36,18 +36,27 @@ def sealed(points: np.ndarray, surface: cKDTree, radius: float, surface_voxel: f
     return (shift < 0.2 * radius) & (n >= np.pi * (radius / surface_voxel) ** 2 / 4)
 
 
+def local_axis(points: np.ndarray, center: np.ndarray, radius: float,
+               min_points: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The drawing's direction near ``center``: (its points within ``radius``, their mean, their
+    principal axis, either sign), or None with fewer than ``min_points`` there."""
+    local = points[np.sum((points - center) ** 2, axis=1) < radius * radius]
+    if len(local) < min_points:
+        return None
+    mean = local.mean(axis=0)
+    _, _, vt = np.linalg.svd(local - mean, full_matrices=False)
+    return local, mean, vt[0]
+
+
 def ended(drawing: np.ndarray, surface: np.ndarray, center: np.ndarray, cfg: NBVConfig) -> bool:
     """Whether the frontier cluster at `center` sits at a tip of the drawing past which at least
     `end_min_points` unpainted surface points and no drawing point lie in a tube `end_check_m` long."""
     if cfg.end_check_m <= 0 or len(drawing) < 10:
         return False
-    r = cfg.end_radius_m
-    local = drawing[np.sum((drawing - center) ** 2, axis=1) < r * r]
-    if len(local) < 10:
+    axis = local_axis(drawing, center, cfg.end_radius_m)
+    if axis is None:
         return False
-    mean = local.mean(axis=0)
-    _, _, vt = np.linalg.svd(local - mean, full_matrices=False)
-    d = vt[0]
+    local, mean, d = axis
     if np.dot(center - mean, d) < 0:
         d = -d
     proj = (local - mean) @ d

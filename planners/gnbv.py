@@ -12,6 +12,7 @@ from scipy.spatial import cKDTree
 from planners import nbv
 from planners.base import ScanState, ViewPlan
 from planners.config import PlannersConfig
+from planners.ends import local_axis
 from planners.line_prior import LinePrior, line_prior, seen_counts
 from planners.open_edges import EdgeViews
 from planners.targets import TargetBook, framing
@@ -75,23 +76,14 @@ class GuidedNBV:
         if len(eyes) == 0:
             return eyes, np.zeros((0, 3, 3))
         R = look_at_rotations(eyes, self._aim_point(state, target))
-        if cfg.frame_line:
-            along = self._line_direction(state, target)
+        if cfg.frame_line:  # the image's wide axis along the paint within 10 cm
+            along = local_axis(state.drawing.xyz.astype(np.float64), target, 0.1)
             if along is not None:
-                R = roll_along(R, along)
+                R = roll_along(R, along[2])
         if state.reachable is not None and cfg.reach_prefilter:
             keep = state.reachable(eyes, R[:, :, 2])
             eyes, R = eyes[keep], R[keep]
         return eyes, R
-
-    def _line_direction(self, state: ScanState, target: np.ndarray) -> np.ndarray | None:
-        """The drawing's direction at a target: the principal axis of the paint within 10 cm."""
-        d2 = np.sum((state.drawing.xyz - target) ** 2, axis=1)
-        near = state.drawing.xyz[d2 < 0.1 ** 2].astype(np.float64)
-        if len(near) < 10:
-            return None
-        _, _, vt = np.linalg.svd(near - near.mean(axis=0), full_matrices=False)
-        return vt[0]
 
     def _failed_here(self, eyes: np.ndarray, target: np.ndarray, voxel: float) -> np.ndarray:
         """Mask of candidate positions the runner could not reach for (nearly) this target."""
