@@ -151,14 +151,15 @@ class ViewMotionPlanner:
             Unreachable: no candidate has one; the message counts the reasons and names the first
                 collision found.
         """
+        memo: dict = {}  # the retract pose depends only on the start: solved once for both passes
         if self.framed:
             try:
-                return self._plan(q_now, poses, scored_roll=True)
+                return self._plan(q_now, poses, memo, scored_roll=True)
             except Unreachable:
                 pass
-        return self._plan(q_now, poses)
+        return self._plan(q_now, poses, memo)
 
-    def _plan(self, q_now: np.ndarray, poses: np.ndarray, scored_roll: bool = False) -> ViewMotion:
+    def _plan(self, q_now: np.ndarray, poses: np.ndarray, memo: dict, scored_roll: bool = False) -> ViewMotion:
         q_now = self.kin._vec(q_now, "q_now")
         P = np.asarray(poses, dtype=np.float64)
         if P.ndim != 3 or P.shape[1:] != (4, 4) or len(P) == 0:
@@ -167,7 +168,6 @@ class ViewMotionPlanner:
         in_reach = np.linalg.norm(P[:, :3, 3] - center, axis=1) <= radius
         rejected = {"beyond reach": int((~in_reach).sum()), "no collision-free IK": 0, "motion collides": 0}
         start_blocked = not self._free(q_now)
-        memo: dict = {}
         clock = {"ik": 0.0, "check": 0.0}
         first_hit: list[str] = []
         t_start = time.perf_counter()
