@@ -116,6 +116,22 @@ def test_returns_on_the_arm_are_recognised(robot):
         robot.on_robot(np.zeros((3, 2)), HOME)
 
 
+def _rolled(T: np.ndarray, deg: float) -> np.ndarray:
+    """The camera pose T turned by ``deg`` about its optical axis."""
+    a = math.radians(deg)
+    out = T.copy()
+    out[:3, :3] = T[:3, :3] @ np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0],
+                                        [0.0, 0.0, 1.0]])
+    return out
+
+
+def _tight_wrist() -> Kinematics:
+    """The Panda with its last joint held within 0.3 rad of home: most rolls are out of reach."""
+    lo, hi = PANDA_Q_MIN.copy(), PANDA_Q_MAX.copy()
+    lo[6], hi[6] = HOME[6] - 0.3, HOME[6] + 0.3
+    return Kinematics(URDF, PANDA_JOINT_NAMES, "panda_hand", hand_eye(), lower=lo, upper=hi)
+
+
 def _roll_deg(R_got: np.ndarray, R_want: np.ndarray) -> float:
     """Angle between the image x axes, modulo the half turn (the image frames the same rectangle)."""
     c = abs(float(R_got[:, 0] @ R_want[:, 0]))
@@ -126,8 +142,7 @@ def test_a_framed_scan_view_keeps_the_planned_roll_and_a_free_one_need_not(robot
     """The D435's image is 87 x 58 deg: the roll the planner scored is the one the arm must take."""
     kin = Kinematics(URDF, PANDA_JOINT_NAMES, "panda_hand", hand_eye(), lower=PANDA_Q_MIN, upper=PANDA_Q_MAX)
     T = view([0.45, 0.25, 0.45], [0.55, 0.0, 0.1])[0]
-    rolled = T.copy()
-    rolled[:3, :3] = T[:3, :3] @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # a quarter turn
+    rolled = _rolled(T, 90.0)
     got = {}
     for framed in (False, True):
         mp = ViewMotionPlanner(kin, PANDA_MAX_VELOCITY, PANDA_MAX_ACCELERATION, PANDA_MAX_JERK, CollisionChecker(robot),
@@ -142,18 +157,14 @@ def test_a_framed_scan_view_keeps_the_planned_roll_and_a_free_one_need_not(robot
 
 
 def test_a_framed_view_the_arm_cannot_roll_to_falls_back_to_any_roll(robot):
-    kin = Kinematics(URDF, PANDA_JOINT_NAMES, "panda_hand", hand_eye(), lower=PANDA_Q_MIN, upper=PANDA_Q_MAX)
-    lo, hi = kin.lower.copy(), kin.upper.copy()
-    lo[6], hi[6] = HOME[6] - 0.3, HOME[6] + 0.3  # the wrist may barely turn: most rolls are out of reach
-    tight = Kinematics(URDF, PANDA_JOINT_NAMES, "panda_hand", hand_eye(), lower=lo, upper=hi)
+    tight = _tight_wrist()
     mp = ViewMotionPlanner(tight, PANDA_MAX_VELOCITY, PANDA_MAX_ACCELERATION, PANDA_MAX_JERK, CollisionChecker(robot),
                            park_q=HOME, framed=True)
     T = view([0.45, 0.25, 0.45], [0.55, 0.0, 0.1])[0]
     rolls = []
-    for a in np.radians(np.arange(0, 180, 30)):
-        R = T[:3, :3] @ np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
-        want = T.copy()
-        want[:3, :3] = R
+    for deg in range(0, 180, 30):
+        want = _rolled(T, deg)
+        R = want[:3, :3]
         T_end = tight.fk(mp.plan(HOME, want[None]).path.positions[-1])  # always reached...
         assert np.linalg.norm(T_end[:3, 3] - want[:3, 3]) < 1e-3 and T_end[:3, 2] @ want[:3, 2] > 0.9999
         rolls.append(_roll_deg(T_end[:3, :3], R))
@@ -163,18 +174,15 @@ def test_a_framed_view_the_arm_cannot_roll_to_falls_back_to_any_roll(robot):
 def test_a_framed_plan_prefers_a_lower_ranked_view_at_its_scored_roll(robot):
     """The ranking holds for the image each pose was scored with: a better-ranked pose the wrist can
     reach only at another roll is a different, unscored view."""
-    lo, hi = PANDA_Q_MIN.copy(), PANDA_Q_MAX.copy()
-    lo[6], hi[6] = HOME[6] - 0.3, HOME[6] + 0.3
-    tight = Kinematics(URDF, PANDA_JOINT_NAMES, "panda_hand", hand_eye(), lower=lo, upper=hi)
+    tight = _tight_wrist()
     args = (tight, PANDA_MAX_VELOCITY, PANDA_MAX_ACCELERATION, PANDA_MAX_JERK, CollisionChecker(robot))
     exact = ViewMotionPlanner(*args, park_q=HOME, free_roll=False)
     T = view([0.45, 0.25, 0.45], [0.55, 0.0, 0.1])[0]
     rolled, at_roll = [], []
-    for a in np.radians(np.arange(0, 180, 15)):
-        want = T.copy()
-        want[:3, :3] = T[:3, :3] @ np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    for deg in range(0, 180, 15):
+        want = _rolled(T, deg)
         rolled.append(want)
-        half = want @ np.diag([-1.0, -1.0, 1.0, 1.0])
+        half = _rolled(want, 180.0)
         at_roll.append(any(exact._ik(P, HOME) is not None for P in (want, half)))
     at_roll = np.array(at_roll)
     assert at_roll.any() and not at_roll.all()  # the limited wrist reaches some rolls, not all
