@@ -146,6 +146,10 @@ class NBVConfig(_Strict):
         ("cnbv",), description="planners that, when the grid's frontier has nothing left worth a view, look at the "
         "paint where the measured surface stops (planners.open_edges), one view per group of it: C-NBV's basket "
         "90.5-97.2 -> 96.7-97.2 %. Not G-NBV: its basket rises from 94.4 to 96.7 % (median) but in 15 views, not 5")
+    edge_cone: bool = Field(False, description="G-NBV: where the paint next to a target lies on the border of the "
+                            "measured surface (planners.open_edges), the viewing cone is centred round that border, "
+                            "halfway between the surface's normal and the way out past the border, not on the normal of "
+                            "the surface within 3 cm: past a rim the unseen face turns away from the views that saw the top")
     open_edge_radius_m: float = Field(0.005, gt=0, le=0.05, description="disc of measured surface that tells whether "
                                       "a paint point lies on its border: a few 2 mm point spacings")
     max_target_visits: int = Field(3, ge=1, le=20, description="give up a frontier cluster after this many views at it")

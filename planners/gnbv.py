@@ -14,9 +14,13 @@ from planners.base import ScanState, ViewPlan
 from planners.config import PlannersConfig
 from planners.ends import local_axis
 from planners.line_prior import LinePrior, line_prior, seen_counts
-from planners.open_edges import EdgeViews
+from planners.open_edges import EdgeViews, round_edge_axis
 from planners.targets import TargetBook, framing
 from planners.views import look_at_rotations, poses_from, roll_along, sphere_lattice
+
+
+#: the patch round a target whose normal (or border) sets its viewing cone
+NORMAL_RADIUS_M = 0.03
 
 
 class GuidedNBV:
@@ -60,6 +64,16 @@ class GuidedNBV:
         d = target - near.mean(axis=0)
         n = np.linalg.norm(d)
         return target + ahead * d / n if n > 0.01 else target
+
+    def _cone_axis(self, state: ScanState, target: np.ndarray) -> np.ndarray | None:
+        """The axis of the target's viewing cone: the surface normal there, or with ``edge_cone`` the
+        way round the border of the measured surface where the paint next to it meets one."""
+        if self.cfg.edge_cone and len(state.drawing):
+            axis = round_edge_axis(state.drawing.xyz, state.drawing.origin, state.surface.xyz, target,
+                                   NORMAL_RADIUS_M, self.cfg.open_edge_radius_m)
+            if axis is not None:
+                return axis
+        return nbv.outward_normal(state.surface, target, NORMAL_RADIUS_M)
 
     def _past(self, state: ScanState, target: np.ndarray) -> np.ndarray:
         """Where the target was already seen from: candidates from there are not offered again."""
@@ -149,7 +163,7 @@ class GuidedNBV:
         for c in order[usable[order]][:4]:
             target = cents[c]
             scored = None
-            normal = nbv.outward_normal(state.surface, target)
+            normal = self._cone_axis(state, target)
             weights = nbv.cell_weights(grid, ijk[lab == c], cfg)
             # Square-on views first (the D435 returns nothing at grazing incidence); only if none of
             # them gains anything a relaxed cone, and last no cone at all: at an edge the normal
@@ -227,7 +241,7 @@ class GuidedNBV:
         for c in clusters:
             target = cl.cents[c]
             start = len(tiers) - 1 if self.book.was_fruitless(target, grid.voxel) else len(self.book.views_of(target, state))
-            todo[int(c)] = (min(start, len(tiers) - 1), nbv.outward_normal(state.surface, target),
+            todo[int(c)] = (min(start, len(tiers) - 1), self._cone_axis(state, target),
                             self._past(state, target))
         first = self._first_gain
         done = []  # per settled cluster: its candidates' (eyes, rotations, owner, gain, cost)

@@ -85,6 +85,28 @@ def open_paint_edges(drawing: np.ndarray, drawing_origin: np.ndarray, surface: n
     return OpenEdges(P[edge], n[edge], out, np.flatnonzero(edge))
 
 
+def round_edge_axis(drawing: np.ndarray, drawing_origin: np.ndarray, surface: np.ndarray, target: np.ndarray,
+                    near_m: float, radius_m: float) -> np.ndarray | None:
+    """Where to look from at the paint within ``near_m`` of ``target`` when it lies on the border of
+    the measured surface: halfway round that border, between the surface's mean normal and the mean
+    way out past it (unit). The surface past a border was not seen by the views that saw up to it,
+    so it turns away from them: at a rim the outer face is round the corner, not under the top's
+    normal. None when fewer than ``MIN_NEIGHBOURS`` open points lie there or their ways out
+    disagree (points all round a patch: no one way round)."""
+    P = np.asarray(drawing, dtype=np.float64).reshape(-1, 3)
+    near = np.sum((P - target) ** 2, axis=1) < near_m * near_m
+    if near.sum() < MIN_NEIGHBOURS:
+        return None
+    edges = open_paint_edges(P[near], np.asarray(drawing_origin)[near], surface, radius_m)
+    if len(edges.xyz) < MIN_NEIGHBOURS:
+        return None
+    n, out = edges.normals.mean(axis=0), edges.outward.mean(axis=0)
+    if np.linalg.norm(out) < 0.5 or np.linalg.norm(n) < 0.5:  # the resultant of unit vectors: agreement
+        return None
+    axis = n / np.linalg.norm(n) + out / np.linalg.norm(out)
+    return axis / np.linalg.norm(axis)
+
+
 def edge_clusters(edges: OpenEdges, link_m: float, min_cells: int, voxel: float) -> list[np.ndarray]:
     """Open points in groups (linked within ``link_m`` when their unseen sides face the same way),
     each as its rows of ``edges``, largest

@@ -55,6 +55,23 @@ def test_a_fully_seen_plate_has_no_open_paint_but_one_cut_short_has():
     assert np.all(e.outward[:, 0] > 0.9)
 
 
+def test_the_cone_round_a_rim_points_halfway_round_it_and_none_inside_a_seen_plate():
+    """A flange's top (z = 0, y >= -0.05) seen from above, a stripe painted across it up to the
+    rim at y = -0.05: the paint near the rim asks for views halfway round it, between the top's
+    normal (+z) and the way out past the rim (-y), where the outer face turns away from the views
+    that saw the top. Paint in the middle of the seen top, and too few points, ask for nothing."""
+    from planners.open_edges import round_edge_axis
+
+    x, y = np.meshgrid(np.arange(-0.05, 0.05 + 1e-9, STEP), np.arange(-0.05, 0.05 + 1e-9, STEP))
+    top = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    paint = top[np.abs(top[:, 0]) <= 0.01]
+    eye = np.tile([0.0, 0.0, 0.4], (len(paint), 1))
+    axis = round_edge_axis(paint, eye, top, np.array([0.0, -0.055, 0.0]), 0.03, 0.005)
+    assert axis is not None and np.allclose(axis, [0.0, -np.sqrt(0.5), np.sqrt(0.5)], atol=0.05)
+    assert round_edge_axis(paint, eye, top, np.array([0.0, 0.0, 0.0]), 0.015, 0.005) is None
+    assert round_edge_axis(paint[:3], eye[:3], top, np.array([0.0, -0.05, 0.0]), 0.03, 0.005) is None
+
+
 def test_open_edges_take_no_nonsense():
     with pytest.raises(ValueError, match="radius_m"):
         open_paint_edges(np.zeros((3, 3)), np.ones((3, 3)), np.zeros((10, 3)), 0.0)
