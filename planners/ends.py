@@ -17,23 +17,22 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from planners.config import NBVConfig
+from planners.discs import discs
 
 
 def sealed(points: np.ndarray, surface: cKDTree, radius: float, surface_voxel: float, k: int = 160) -> np.ndarray:
     """Per drawing point: is it surrounded by observed surface (painted or not) within `radius`?
-    The disc round a point inside the seen surface is full: its neighbours' centroid is the point
-    itself. At the border of what was seen (a rim, a flank curving away, a gap between rods, the
-    image's edge) half the disc is empty and the centroid moves about 0.42 radius off; there the
-    paint may go on. Sealed: the centroid within 0.2 radius and at least a quarter of the disc's
-    surface voxels present (k nearest neighbours at most, so dense clouds cost no more)."""
+    Inside the seen surface its disc (planners.discs) is full and the neighbours' centroid lies on
+    the point's normal; at the border of what was seen (a rim, a flank curving away, a gap between
+    rods, the image's edge) half the disc is empty and the centroid moves about 0.42 radius off in
+    the tangent plane; there the paint may go on. Sealed: that shift under 0.2 radius and at least
+    a quarter of the disc's surface voxels present (k nearest neighbours at most, so dense clouds
+    cost no more)."""
     if len(points) == 0:
         return np.zeros(0, dtype=bool)
-    d, idx = surface.query(points, k=k, distance_upper_bound=radius)
-    ok = np.isfinite(d)
-    n = ok.sum(axis=1)
-    q = surface.data[np.where(ok, idx, 0)] * ok[..., None]
-    shift = np.linalg.norm(q.sum(axis=1) / np.maximum(n, 1)[:, None] - points, axis=1)
-    return (shift < 0.2 * radius) & (n >= np.pi * (radius / surface_voxel) ** 2 / 4)
+    disc = discs(points, surface, radius, k)
+    shift = np.linalg.norm(disc.shift, axis=1)
+    return (shift < 0.2 * radius) & (disc.count >= np.pi * (radius / surface_voxel) ** 2 / 4)
 
 
 def local_axis(points: np.ndarray, center: np.ndarray, radius: float,

@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 
 from planners import nbv, raycast
 from planners.base import ScanState, ViewPlan
+from planners.discs import discs
 from planners.config import NBVConfig
 from planners.views import in_image, look_at_rotations, poses_from, sphere_lattice
 
@@ -61,22 +62,13 @@ def open_paint_edges(drawing: np.ndarray, drawing_origin: np.ndarray, surface: n
     S = S[np.all((S >= lo) & (S <= hi), axis=1)]
     if len(S) < MIN_NEIGHBOURS:
         return empty
-    k = min(NEIGHBOURS, len(S))
-    d, idx = cKDTree(S).query(P, k=k, distance_upper_bound=radius_m)
-    d, idx = d.reshape(len(P), k), idx.reshape(len(P), k)
-    w = np.isfinite(d)
-    cnt = w.sum(axis=1)
-    Q = S[np.where(w, idx, 0)] - P[:, None, :]  # neighbours relative to the point
-    Wf = w.astype(np.float64)
-    c = np.einsum("mk,mkj->mj", Wf, Q) / np.maximum(cnt, 1)[:, None]
-    D = Q - c[:, None, :]
-    C = np.einsum("mk,mki,mkj->mij", Wf, D, D) / np.maximum(cnt, 1)[:, None, None]
-    n = np.linalg.eigh(C)[1][:, :, 0]  # least variance: the normal
+    disc = discs(P, cKDTree(S), radius_m, NEIGHBOURS)
+    cnt, n = disc.count, disc.normals
     toward = O - P
     seen = np.all(np.isfinite(toward), axis=1)
     flip = seen & (np.einsum("mj,mj->m", n, np.where(seen[:, None], toward, 0.0)) < 0)
     n[flip] *= -1.0
-    c_t = c - np.einsum("mj,mj->m", c, n)[:, None] * n  # the centroid's offset in the tangent plane
+    c_t = disc.shift  # the centroid's offset in the tangent plane (a flip of n leaves it)
     shift = np.linalg.norm(c_t, axis=1)
     edge = (cnt >= MIN_NEIGHBOURS) & (shift > EDGE_SHIFT * radius_m)
     if not edge.any():

@@ -207,6 +207,31 @@ def test_sealed_paint_has_seen_surface_all_round_and_a_border_does_not():
     assert not sealed(pts[:1], sparse, 0.012, 0.002)[0]
 
 
+def test_paint_in_a_seen_inside_corner_is_sealed_and_on_a_half_seen_rim_is_not():
+    """An I-beam's web meeting its flange, both faces seen (noisy returns, de-duplicated at 2 mm as
+    the scan's clouds are): paint in the corner has seen surface all round. Its neighbours form an
+    L whose centroid moves off along the corner's bisector, not into the surface (measured in 3-D
+    the shift left 47 of these 126 points open, and the unknown under the web drew a view). A rim
+    whose outer face was not seen leaves the same paint open."""
+    from scipy.spatial import cKDTree
+
+    from planners.clouds import voxel_keys
+    from planners.ends import sealed
+
+    rng = np.random.default_rng(1)
+    n = 40000
+    web = np.column_stack([rng.uniform(-0.03, 0.03, n), -rng.uniform(0, 0.04, n), np.zeros(n)])  # z = 0, y <= 0
+    flange = np.column_stack([rng.uniform(-0.03, 0.03, n), np.zeros(n), rng.uniform(0, 0.04, n)])  # y = 0, z >= 0
+    S = np.vstack([web, flange]) + rng.normal(0, 0.001, (2 * n, 3))
+    S = S[np.unique(voxel_keys(S, 0.002), return_index=True)[1]]
+    corner = S[(np.abs(S[:, 0]) < 0.01) & (np.abs(S[:, 1]) < 0.004) & (np.abs(S[:, 2]) < 0.004)]
+    assert len(corner) > 50 and sealed(corner, cKDTree(S), 0.012, 0.002).all()
+    top = web + rng.normal(0, 0.001, web.shape)  # the flange unseen: the web's paint ends at a border
+    top = top[np.unique(voxel_keys(top, 0.002), return_index=True)[1]]
+    rim = top[(np.abs(top[:, 0]) < 0.01) & (top[:, 1] > -0.001)]
+    assert len(rim) > 10 and not sealed(rim, cKDTree(top), 0.012, 0.002).any()
+
+
 def test_cnbv_keeps_targets_as_gnbv_does():
     """C-NBV books its views per frontier cluster like G-NBV: a view that found no drawing marks its
     target, a second gives it up; a view direction already taken onto a cluster is not offered
