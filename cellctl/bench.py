@@ -330,7 +330,7 @@ def oracle_bench(args, out: Path) -> int:
     cfg, cfg_path = load_cell_config(args.config)
     pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
     scenes = parse_list(args.scenes, SCENE_NAMES, "scenes", SCENE_NAMES)
-    print(ob.write(ob.measure(cfg, pcfg, scenes), out))
+    print(ob.write(ob.measure(cfg, pcfg, scenes, sensor=args.oracle_sensor, step_deg=args.oracle_step_deg), out))
     return 0
 
 

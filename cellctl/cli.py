@@ -281,6 +281,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--oracle", action="store_true",
                    help="instead of scans: the coverage an all-knowing planner reaches after 1-4 views (the true "
                         "mesh cast from reachable positions; oracle.json, oracle.md)")
+    b.add_argument("--oracle-sensor", choices=("cast", "twin"), default="cast",
+                   help="with --oracle: cast the true mesh (default, minutes) or render each candidate with the twin's "
+                        "own sensor, its depth-discontinuity dropouts included (about 0.3 s per candidate and roll)")
+    b.add_argument("--oracle-step-deg", type=float, default=7.5,
+                   help="with --oracle: spacing of the candidate positions on their shells (default: 7.5)")
     b.add_argument("--report", default=None, metavar="BENCH_JSON",
                    help="only rewrite bench.md and the plots next to this bench.json, no scans")
     b.set_defaults(func=_bench)

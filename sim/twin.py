@@ -422,7 +422,7 @@ class TwinCamera:
     def capture_at(self, T_base_cam: np.ndarray) -> RGBDFrame:
         """Twin only: a frame from an explicit T_base_cam (the arm is not moved)."""
         color, raw = self.render(T_base_cam)
-        truth = self._sensor(raw)
+        truth = self.sensor_depth(raw)
         self.last_truth = truth
         depth = apply_depth_noise(truth, self._cfg, self._rng)
         return RGBDFrame(color=color, depth=depth, intrinsics=self.intrinsics, timestamp=time.monotonic())
@@ -431,7 +431,7 @@ class TwinCamera:
         """Noise-free sensor depth (range limits and grazing applied) without advancing the noise
         rng; at the arm's current camera pose when ``T_base_cam`` is None."""
         T = self._arm.camera_pose() if T_base_cam is None else T_base_cam
-        return self._sensor(self.render(T)[1])
+        return self.sensor_depth(self.render(T)[1])
 
     def render(self, T_base_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Raw render: (color (H, W, 3) uint8 RGB, depth (H, W) float32 metres along the optical axis,
@@ -451,7 +451,8 @@ class TwinCamera:
         z[z > 0.999 * f] = np.nan  # cleared depth buffer: nothing hit
         return color, z.astype(np.float32)
 
-    def _sensor(self, raw: np.ndarray) -> np.ndarray:
+    def sensor_depth(self, raw: np.ndarray) -> np.ndarray:
+        """What the D435 returns of a raw render's depth: NaN out of range, at grazing incidence and at depth discontinuities."""
         cfg = self._cfg
         invalid = grazing_mask(raw, self.K, cfg.max_incidence_deg)
         with np.errstate(invalid="ignore"):

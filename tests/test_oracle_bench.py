@@ -60,3 +60,37 @@ def test_gnbv_first_step_is_put_to_the_truth_of_the_stripe():
     assert f["top5_new_percent"][0] > 0.0
     assert f["best_new_percent"] >= max(f["top5_new_percent"])
     assert 1 <= f["best_rank"] <= f["candidates"]
+
+
+def test_the_twins_own_frames_lose_thin_rods_silhouettes_that_a_mesh_cast_keeps():
+    """From the basket's initial view the twin's sensor (depth-discontinuity dropouts at every rod's
+    silhouette, the paint filter) shows part of what the cast shows, never voxels the cast misses
+    by much; a camera looking away shows nothing. Both rolls of a pose look the same way."""
+    from pathlib import Path
+
+    from cellctl.config import load_cell_config
+    from cellctl.oracle_bench import TwinViews, rolled_poses
+    from planners.config import load_planners_config
+    from sim.scenes import load_scene
+    from sim.twin import Twin
+
+    cfg, path = load_cell_config(Path(__file__).parents[1] / "configs" / "cell.sim.yaml")
+    pcfg = load_planners_config(path.parent / cfg.planners_config)
+    cam = cfg.twin.camera.model_copy(update={"noise": False})
+    scene = load_scene("basket")
+    T0 = scene.initial_view_candidates[0]
+    cast = TrueViews(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points, 0.01, cam)
+    seen_cast = cast.seen(T0[:3, 3], T0[:3, 3] + T0[:3, 2])
+    with Twin(scene, cfg.twin.model_copy(update={"camera": cam})) as twin:
+        tv = TwinViews(twin, scene.gt_points, 0.01, pcfg.color)
+        seen = tv.seen_pose(T0)
+        away = T0.copy()
+        away[:3, :3] = T0[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # turned round: the sky
+        assert not tv.seen_pose(away).any()
+    assert np.array_equal(tv.keys, cast.keys)
+    assert 0.2 < seen.mean() < seen_cast.mean(), "the silhouettes' dropouts cost coverage"
+    assert (seen & ~seen_cast).sum() <= 0.05 * len(seen)
+    P = rolled_poses(np.array([[0.3, -0.3, 0.4]]), np.array([[0.5, 0.0, 0.1]]))
+    assert P.shape == (2, 4, 4) and np.allclose(P[0][:3, 2], P[1][:3, 2])
+    assert abs(P[0][:3, 0] @ P[1][:3, 0]) < 1e-9 and np.allclose(P[1][:3, :3].T @ P[1][:3, :3], np.eye(3))
+    assert np.linalg.det(P[1][:3, :3]) > 0.99
