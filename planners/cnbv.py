@@ -39,7 +39,7 @@ class ConstrainedNBV:
         self._first_gain: float | None = None
         self._unreachable = np.zeros((0, 3))  # candidate positions the runner could not reach
         self._last: tuple | None = None  # (step, ranked candidate positions, the centroid each looks at)
-        self.edges = EdgeViews(self.cfg) if "cnbv" in self.cfg.open_edge_views else None
+        self.edges = EdgeViews(self.cfg, cfg.grid.surface_voxel_m) if "cnbv" in self.cfg.open_edge_views else None
 
     def reject(self, plan: ViewPlan) -> None:
         """The runner reached none of the candidates it tried: those positions are dropped from now on

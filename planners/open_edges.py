@@ -31,6 +31,10 @@ EDGE_SHIFT = 2.0 / (3.0 * np.pi)
 NEIGHBOURS = 32
 #: fewer neighbours than this in the disc: too sparse to tell an edge (isolated points are noise)
 MIN_NEIGHBOURS = 6
+#: a view sees an open point usefully when it looks at least this much further round its border
+EDGE_TURN = np.pi / 6
+#: open points scored at most in a joint plan (a fixed thinning of them)
+JOINT_POINTS = 2000
 
 
 @dataclass
@@ -147,8 +151,9 @@ class EdgeViews:
     the candidates round it that look furthest round the edges (``round_the_edge``) of the group's
     points they frame and see past the occupied cells."""
 
-    def __init__(self, cfg: NBVConfig):
+    def __init__(self, cfg: NBVConfig, surface_voxel: float = 0.002):
         self.cfg = cfg
+        self.surface_voxel = surface_voxel
         self._lattice = sphere_lattice(cfg.search_radius_m, cfg.min_standoff_m, cfg.candidate_spacing_m)
         self.looked_at: list[tuple[np.ndarray, np.ndarray]] = []  # (centre, way out) of each group planned for
 
@@ -158,7 +163,8 @@ class EdgeViews:
         on ``book`` (planners.targets.TargetBook) like any target, or ``stop`` itself. Returns the
         plan and, for a view, the planner's record of it (step, ranked eyes, the point each looks at)."""
         t0 = time.perf_counter()
-        planned = self.plan(state, occupied)
+        planned = (self.plan_joint(state, occupied, self.surface_voxel) if self.cfg.joint_edge_views
+                   else self.plan(state, occupied))
         stop.timings["edges_s"] = time.perf_counter() - t0
         if planned is None:
             return stop, None
@@ -210,12 +216,55 @@ class EdgeViews:
         return any(np.linalg.norm(c - centre) <= 3 * voxel and float(w @ way) > 0 for c, w in self.looked_at)
 
     def _gain(self, state: ScanState, eyes: np.ndarray, R: np.ndarray, pts: OpenEdges, origins: np.ndarray,
-              occupied: nbv.OccupiedIndex) -> np.ndarray:
-        """(C,) summed ``round_the_edge`` over the open points each candidate frames and sees."""
+              occupied: nbv.OccupiedIndex, counted: bool = False):
+        """(C,) summed ``round_the_edge`` over the open points each candidate frames and sees; with
+        ``counted`` also (C,) how many of them it sees at least ``EDGE_TURN`` further round."""
         grid = state.grid
         more = round_the_edge(eyes, pts, origins)  # (C, M)
         z, framed = in_image(eyes, R, pts.xyz, state.K, state.image_size)
         framed &= z < self.cfg.max_range_m
         seen = raycast.clear_sight(eyes, pts.xyz, framed & (more > 0), 1.5 * grid.voxel, grid.lo, grid.voxel,
                                    grid.shape, occupied.flat)  # short of the point's own cell
-        return np.where(seen, more, 0.0).sum(axis=1)
+        gain = np.where(seen, more, 0.0).sum(axis=1)
+        return (gain, (seen & (more >= EDGE_TURN)).sum(axis=1)) if counted else gain
+
+    def plan_joint(self, state: ScanState, occupied: nbv.OccupiedIndex | None = None, surface_voxel: float = 0.002):
+        """All the open paint at once: candidates round its centre, looking at it at both rolls,
+        each scored on every open point (``round_the_edge``), so one view that sees round many
+        borders (a cage's rods seen from above past their flanks) beats one per border. Worth a
+        view only when it sees as many points ``EDGE_TURN`` further round as line a border
+        ``min_view_growth_voxels`` cells long (points ``surface_voxel`` apart); never from a
+        direction already taken (``revisit_angle_deg``). (poses, Q, gain, centre) or None."""
+        cfg, grid = self.cfg, state.grid
+        if len(state.drawing) == 0:
+            return None
+        edges = open_paint_edges(state.drawing.xyz, state.drawing.origin, state.surface.xyz, cfg.open_edge_radius_m)
+        if len(edges.xyz) < MIN_NEIGHBOURS:
+            return None
+        if len(edges.xyz) > JOINT_POINTS:  # a fixed thinning: the score is a sum over borders
+            keep = np.linspace(0, len(edges.xyz) - 1, JOINT_POINTS).astype(np.int64)
+            edges = OpenEdges(edges.xyz[keep], edges.normals[keep], edges.outward[keep], edges.index[keep])
+        occupied = occupied or nbv.OccupiedIndex(grid)
+        c = edges.xyz.mean(axis=0)
+        eyes = c + self._lattice
+        eyes = eyes[nbv.feasible_eyes(grid, eyes, c, None, cfg, state.viewpoints, occupied=occupied)]
+        if len(eyes) == 0:
+            return None
+        R = look_at_rotations(eyes, c)
+        turned = R.copy()
+        turned[:, :, 0], turned[:, :, 1] = R[:, :, 1], -R[:, :, 0]  # the image's wide axis the other way
+        eyes, R = np.concatenate([eyes, eyes]), np.concatenate([R, turned])
+        if state.reachable is not None and cfg.reach_prefilter:
+            keep = state.reachable(eyes, R[:, :, 2])
+            eyes, R = eyes[keep], R[keep]
+        if len(eyes) == 0:
+            return None
+        gain, count = self._gain(state, eyes, R, edges, state.drawing.origin[edges.index].astype(np.float64),
+                                 occupied, counted=True)
+        worth = count * surface_voxel >= cfg.min_view_growth_voxels * grid.voxel
+        if not worth.any():
+            return None
+        eyes, R, gain = eyes[worth], R[worth], gain[worth]
+        q = nbv.quality(gain, np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1), cfg.lam)
+        rank = np.argsort(-q, kind="stable")
+        return poses_from(eyes[rank], R[rank]), q[rank], gain[rank], c

@@ -94,7 +94,7 @@ def test_a_view_further_round_the_edge_scores_more_and_one_along_it_little():
     assert more[3] == 0.0 and more[4] == 0.0
 
 
-def _rod_state():
+def _rod_state(band: float = 0.0125):
     """A 16 mm rod across the table at z = 0.15 seen from above, its paint ending at the flanks
     where the camera's view of the rod ended (60 deg round each side); every other cell of the grid
     observed: the grid's frontier has nothing left."""
@@ -110,7 +110,7 @@ def _rod_state():
     rod = rod + np.array([0.45, 0.0, 0.15])
     grid.integrate(cam, rod.astype(np.float32))
     grid.logodds[grid.logodds == 0] = -2.0  # the rest observed free: no frontier
-    paint = np.abs(rod[:, 0] - 0.45) <= 0.0125
+    paint = np.abs(rod[:, 0] - 0.45) <= band
     K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
     return cfg, painted_state(grid, rod, paint, cam, np.array([0.45, 0.0, 0.15]), K, (320, 240), step=1)
 
@@ -134,3 +134,28 @@ def test_cnbv_looks_round_the_rod_when_the_grid_frontier_is_done():
     second = cnbv.next_view(state)
     assert not second.stop and np.sign(second.target[1]) == -side
     assert cnbv.next_view(state).stop
+
+
+def test_joint_edge_views_score_every_border_at_once_and_stop_when_none_is_worth_a_view():
+    """The rod's two open flanks in one plan: its candidates round the centre of all the open
+    paint, each scored on both flanks, the best from a flank's side and lower down, worth what the
+    per-group plan's best is (the flanks face apart: no view sees round both). A direction taken is not offered again, and when no candidate
+    sees enough of the border further round, there is no plan."""
+    import dataclasses
+
+    from planners.open_edges import EdgeViews
+
+    cfg, state = _rod_state(band=0.04)  # 8 cm of paint along the rod: each flank's border is worth a view
+    joint = cfg.nbv.model_copy(update={"joint_edge_views": True})
+    poses, q, gain, centre = EdgeViews(joint, cfg.grid.surface_voxel_m).plan_joint(state, None, 0.002)
+    assert abs(centre[1]) < 0.003 and np.all(np.diff(q) <= 1e-12)
+    eye = poses[0, :3, 3]
+    assert abs(eye[1]) > 0.15 and eye[2] < 0.45, "from a flank's side, lower down"
+    assert gain[0] == pytest.approx(EdgeViews(cfg.nbv).plan(state)[2][0], rel=0.05), "as much as one flank's own best"
+    taken = dataclasses.replace(state, viewpoints=np.vstack([state.viewpoints, eye]))
+    again = EdgeViews(joint, 0.002).plan_joint(taken, None, 0.002)[0][:, :3, 3]
+    u = (eye - centre) / np.linalg.norm(eye - centre)
+    w = (again - centre) / np.linalg.norm(again - centre, axis=1, keepdims=True)
+    assert np.degrees(np.arccos(np.clip(w @ u, -1, 1))).min() >= cfg.nbv.revisit_angle_deg - 1e-6
+    strict = joint.model_copy(update={"min_view_growth_voxels": 10_000})
+    assert EdgeViews(strict, 0.002).plan_joint(state, None, 0.002) is None
