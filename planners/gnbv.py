@@ -223,7 +223,8 @@ class GuidedNBV:
         """The grid's frontier is done: a view of the open paint (planners.open_edges), or the stop."""
         if self.edges is None:
             return stop
-        plan, last = self.edges.or_stop(state, self.book, stop, occupied)
+        plan, last = self.edges.or_stop(state, self.book, stop, occupied,
+                                        lambda eyes, centre: self._failed_here(eyes, centre, state.grid.voxel))
         if last is not None:
             self._last = last
         return plan

@@ -157,13 +157,14 @@ class EdgeViews:
         self._lattice = sphere_lattice(cfg.search_radius_m, cfg.min_standoff_m, cfg.candidate_spacing_m)
         self.looked_at: list[tuple[np.ndarray, np.ndarray]] = []  # (centre, way out) of each group planned for
 
-    def or_stop(self, state: ScanState, book, stop: ViewPlan,
-                occupied: nbv.OccupiedIndex | None = None) -> tuple[ViewPlan, tuple | None]:
+    def or_stop(self, state: ScanState, book, stop: ViewPlan, occupied: nbv.OccupiedIndex | None = None,
+                failed=None) -> tuple[ViewPlan, tuple | None]:
         """The planner's grid frontier is done (its ``stop`` plan): a view of the open paint, booked
         on ``book`` (planners.targets.TargetBook) like any target, or ``stop`` itself. Returns the
-        plan and, for a view, the planner's record of it (step, ranked eyes, the point each looks at)."""
+        plan and, for a view, the planner's record of it (step, ranked eyes, the point each looks at).
+        ``failed(eyes, centre)``: mask of positions the runner could not reach for that centre."""
         t0 = time.perf_counter()
-        planned = (self.plan_joint(state, occupied, self.surface_voxel) if self.cfg.joint_edge_views
+        planned = (self.plan_joint(state, occupied, self.surface_voxel, failed) if self.cfg.joint_edge_views
                    else self.plan(state, occupied))
         stop.timings["edges_s"] = time.perf_counter() - t0
         if planned is None:
@@ -228,13 +229,15 @@ class EdgeViews:
         gain = np.where(seen, more, 0.0).sum(axis=1)
         return (gain, (seen & (more >= EDGE_TURN)).sum(axis=1)) if counted else gain
 
-    def plan_joint(self, state: ScanState, occupied: nbv.OccupiedIndex | None = None, surface_voxel: float = 0.002):
+    def plan_joint(self, state: ScanState, occupied: nbv.OccupiedIndex | None = None, surface_voxel: float = 0.002,
+                   failed=None):
         """All the open paint at once: candidates round its centre, looking at it at both rolls,
         each scored on every open point (``round_the_edge``), so one view that sees round many
         borders (a cage's rods seen from above past their flanks) beats one per border. Worth a
         view only when it sees as many points ``EDGE_TURN`` further round as line a border
         ``min_view_growth_voxels`` cells long (points ``surface_voxel`` apart); never from a
-        direction already taken (``revisit_angle_deg``). (poses, Q, gain, centre) or None."""
+        direction already taken (``revisit_angle_deg``), nor from where ``failed(eyes, centre)`` says the
+        runner could not reach. (poses, Q, gain, centre) or None."""
         cfg, grid = self.cfg, state.grid
         if len(state.drawing) == 0:
             return None
@@ -248,6 +251,8 @@ class EdgeViews:
         c = edges.xyz.mean(axis=0)
         eyes = c + self._lattice
         eyes = eyes[nbv.feasible_eyes(grid, eyes, c, None, cfg, state.viewpoints, occupied=occupied)]
+        if failed is not None and len(eyes):
+            eyes = eyes[~failed(eyes, c)]
         if len(eyes) == 0:
             return None
         R = look_at_rotations(eyes, c)

@@ -140,7 +140,8 @@ def test_joint_edge_views_score_every_border_at_once_and_stop_when_none_is_worth
     """The rod's two open flanks in one plan: its candidates round the centre of all the open
     paint, each scored on both flanks, the best from a flank's side and lower down, worth what the
     per-group plan's best is (the flanks face apart: no view sees round both). A direction taken is not offered again, and when no candidate
-    sees enough of the border further round, there is no plan."""
+    sees enough of the border further round, there is no plan. Positions the runner could not
+    reach are not offered again."""
     import dataclasses
 
     from planners.open_edges import EdgeViews
@@ -157,5 +158,8 @@ def test_joint_edge_views_score_every_border_at_once_and_stop_when_none_is_worth
     u = (eye - centre) / np.linalg.norm(eye - centre)
     w = (again - centre) / np.linalg.norm(again - centre, axis=1, keepdims=True)
     assert np.degrees(np.arccos(np.clip(w @ u, -1, 1))).min() >= cfg.nbv.revisit_angle_deg - 1e-6
+    near_top = lambda eyes, c: np.linalg.norm(eyes - eye, axis=1) < 1e-3  # noqa: E731 (the runner failed there)
+    assert not np.any(np.linalg.norm(EdgeViews(joint, 0.002).plan_joint(state, None, 0.002, near_top)[0][:, :3, 3]
+                                     - eye, axis=1) < 1e-3)
     strict = joint.model_copy(update={"min_view_growth_voxels": 10_000})
     assert EdgeViews(strict, 0.002).plan_joint(state, None, 0.002) is None
