@@ -146,8 +146,8 @@ class NBVConfig(_Strict):
         ("cnbv",), description="planners that, when the grid's frontier has nothing left worth a view, look at the "
         "paint where the measured surface stops (planners.open_edges), one view per group of it: C-NBV's basket "
         "90.5-97.2 -> 96.7-97.2 %. Not G-NBV: its basket rises from 94.4 to 96.7 % (median) but in 15 views, not 5")
-    joint_edge_views: bool = Field(False, description="open-edge views (open_edge_views) scored on all the open paint "
-                                   "at once, from round its centre, instead of one view per group of it")
+    joint_edge_views: bool = Field(False, description="G-NBV: its open-edge views (open_edge_views) scored on all the "
+                                   "open paint at once, from round its centre, instead of one view per group of it")
     edge_cone: bool = Field(False, description="G-NBV: where the paint next to a target lies on the border of the "
                             "measured surface (planners.open_edges), the viewing cone is centred round that border, "
                             "halfway between the surface's normal and the way out past the border, not on the normal of "

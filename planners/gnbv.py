@@ -33,7 +33,8 @@ class GuidedNBV:
         self._first_gain: float | None = None  # the scale of a useful view, for the stop rule
         self._last: tuple | None = None  # (step, ranked eyes, their targets) of a joint plan
         self._prior: LinePrior | None = None  # this step's line prior, when the surface is a cylinder
-        self.edges = EdgeViews(self.cfg, cfg.grid.surface_voxel_m) if "gnbv" in self.cfg.open_edge_views else None
+        self.edges = (EdgeViews(self.cfg, cfg.grid.surface_voxel_m, self.cfg.joint_edge_views)
+                      if "gnbv" in self.cfg.open_edge_views else None)
         self._unreachable_eyes = np.zeros((0, 3))  # candidate positions the runner could not reach...
         self._unreachable_for = np.zeros((0, 3))  # ...and the target each looked at
 

@@ -151,9 +151,10 @@ class EdgeViews:
     the candidates round it that look furthest round the edges (``round_the_edge``) of the group's
     points they frame and see past the occupied cells."""
 
-    def __init__(self, cfg: NBVConfig, surface_voxel: float = 0.002):
+    def __init__(self, cfg: NBVConfig, surface_voxel: float = 0.002, joint: bool = False):
         self.cfg = cfg
         self.surface_voxel = surface_voxel
+        self.joint = joint  # plan_joint, not one view per group
         self._lattice = sphere_lattice(cfg.search_radius_m, cfg.min_standoff_m, cfg.candidate_spacing_m)
         self.looked_at: list[tuple[np.ndarray, np.ndarray]] = []  # (centre, way out) of each group planned for
 
@@ -164,7 +165,7 @@ class EdgeViews:
         plan and, for a view, the planner's record of it (step, ranked eyes, the point each looks at).
         ``failed(eyes, centre)``: mask of positions the runner could not reach for that centre."""
         t0 = time.perf_counter()
-        planned = (self.plan_joint(state, occupied, self.surface_voxel, failed) if self.cfg.joint_edge_views
+        planned = (self.plan_joint(state, occupied, self.surface_voxel, failed) if self.joint
                    else self.plan(state, occupied))
         stop.timings["edges_s"] = time.perf_counter() - t0
         if planned is None:
