@@ -144,8 +144,9 @@ class NBVConfig(_Strict):
                               "False: eq. 5 as the paper")
     open_edge_views: tuple[Literal["cnbv", "gnbv"], ...] = Field(
         ("cnbv",), description="planners that, when the grid's frontier has nothing left worth a view, look at the "
-        "paint where the measured surface stops (planners.open_edges), one view per group of it: C-NBV's basket "
-        "90.5-97.2 -> 96.7-97.2 %. Not G-NBV: its basket rises from 94.4 to 96.7 % (median) but in 15 views, not 5")
+        "paint where the measured surface stops (planners.open_edges): C-NBV one view per group of it (its basket "
+        "90.5-97.2 -> 96.7-97.2 %); G-NBV one per group (15 views on the basket) or, with joint_edge_views, all at once "
+        "(configs/planners.yaml lists both)")
     joint_edge_views: bool = Field(False, description="G-NBV: its open-edge views (open_edge_views) scored on all the "
                                    "open paint at once, from round its centre, instead of one view per group of it")
     edge_cone: bool = Field(False, description="G-NBV: where the paint next to a target lies on the border of the "
