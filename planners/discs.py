@@ -33,7 +33,7 @@ def discs(points: np.ndarray, surface: cKDTree, radius: float, k: int) -> Discs:
         z = np.zeros((len(P), 3))
         return Discs(np.zeros(len(P), dtype=np.int64), z, z.copy())
     k = min(k, surface.n)
-    d, idx = surface.query(P, k=k, distance_upper_bound=radius)
+    d, idx = surface.query(P, k=k, distance_upper_bound=radius, workers=-1)
     d, idx = d.reshape(len(P), k), idx.reshape(len(P), k)
     w = np.isfinite(d)
     cnt = w.sum(axis=1)

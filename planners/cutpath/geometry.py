@@ -407,7 +407,7 @@ class Surface:
         than a handful lie inside), on the side of the sensors that saw them."""
         at = np.asarray(at, dtype=np.float64)
         k = min(neighbours, len(self.xyz))
-        d, idx = self.tree.query(at, k=k)
+        d, idx = self.tree.query(at, k=k, workers=-1)
         d, idx = d.reshape(len(at), k), idx.reshape(len(at), k)
         w = (d <= self.radius).astype(np.float64)
         sparse = w.sum(axis=1) < _MIN_NORMAL_NEIGHBOURS
