@@ -35,6 +35,10 @@ MIN_NEIGHBOURS = 6
 EDGE_TURN = np.pi / 6
 #: open points scored at most in a joint plan (a fixed thinning of them)
 JOINT_POINTS = 2000
+#: the resultant of the open points' unit normals at least this for them to lie on one face
+#: (normals within about 25 deg of their mean); a rod's front, its normals spread round its
+#: curve, has no one face to look round from
+ONE_FACE = 0.9
 
 
 @dataclass
@@ -87,8 +91,10 @@ def round_edge_axis(drawing: np.ndarray, drawing_origin: np.ndarray, surface: np
     the measured surface: halfway round that border, between the surface's mean normal and the mean
     way out past it (unit). The surface past a border was not seen by the views that saw up to it,
     so it turns away from them: at a rim the outer face is round the corner, not under the top's
-    normal. None when fewer than ``MIN_NEIGHBOURS`` open points lie there or their ways out
-    disagree (points all round a patch: no one way round)."""
+    normal. None when fewer than ``MIN_NEIGHBOURS`` open points lie there, their ways out
+    disagree (points all round a patch: no one way round), or they lie on no one face
+    (``ONE_FACE``: on thin round stock every point is near a border, and the mean way out would
+    turn the cone off the views that look down on the stock)."""
     P = np.asarray(drawing, dtype=np.float64).reshape(-1, 3)
     near = np.sum((P - target) ** 2, axis=1) < near_m * near_m
     if near.sum() < MIN_NEIGHBOURS:
@@ -97,7 +103,7 @@ def round_edge_axis(drawing: np.ndarray, drawing_origin: np.ndarray, surface: np
     if len(edges.xyz) < MIN_NEIGHBOURS:
         return None
     n, out = edges.normals.mean(axis=0), edges.outward.mean(axis=0)
-    if np.linalg.norm(out) < 0.5 or np.linalg.norm(n) < 0.5:  # the resultant of unit vectors: agreement
+    if np.linalg.norm(out) < 0.5 or np.linalg.norm(n) < ONE_FACE:  # resultants of unit vectors: agreement
         return None
     axis = n / np.linalg.norm(n) + out / np.linalg.norm(out)
     return axis / np.linalg.norm(axis)
