@@ -163,3 +163,24 @@ def test_joint_edge_views_score_every_border_at_once_and_stop_when_none_is_worth
                                      - eye, axis=1) < 1e-3)
     strict = joint.model_copy(update={"min_view_growth_voxels": 10_000})
     assert EdgeViews(strict, 0.002).plan_joint(state, None, 0.002) is None
+
+
+def test_the_cone_does_not_turn_round_the_end_of_a_rod_s_seen_front():
+    """A 16 mm rod along x seen from above up to x = 0 (the rest hidden), painted across its top
+    +-60 deg: the open paint at x = 0 has one way out (+x), but its normals spread round the rod
+    (resultant 0.8), so there is no one face to look round from and the cone keeps the normal.
+    On a 60 mm pipe painted +-25 deg the normals agree (0.97): the cone turns round the end."""
+    from planners.open_edges import round_edge_axis
+
+    def rod(r, paint_deg):
+        th = np.arange(-85.0, 85.0 + 1e-9, np.degrees(STEP / r))
+        X, T = np.meshgrid(np.arange(-0.05, 0.0 + 1e-9, STEP), np.radians(th))
+        surf = np.column_stack([X.ravel(), r * np.sin(T.ravel()), r * np.cos(T.ravel())])
+        paint = surf[(np.abs(T.ravel()) <= np.radians(paint_deg)) & (X.ravel() >= -0.02)]
+        return surf, paint, np.tile([0.0, 0.0, 0.4], (len(paint), 1))
+
+    surf, paint, eye = rod(0.008, 60.0)
+    assert round_edge_axis(paint, eye, surf, np.array([0.003, 0.0, 0.008]), 0.03, 0.005) is None
+    surf, paint, eye = rod(0.03, 25.0)
+    axis = round_edge_axis(paint, eye, surf, np.array([0.003, 0.0, 0.03]), 0.03, 0.005)
+    assert axis is not None and axis[0] > 0.6 and axis[2] > 0.6
