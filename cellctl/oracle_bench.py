@@ -34,7 +34,7 @@ from planners.config import PlannersConfig
 from planners.gnbv import GuidedNBV
 from planners.motion.kinematics import Kinematics
 from planners.motion.reach_map import reach_map_for
-from planners.views import look_at_rotations, poses_from
+from planners.views import look_at_rotations, poses_from, quarter_turn
 from sim.config import D435Config
 from sim.scenes import load_scene
 from sim.twin import Twin
@@ -125,10 +125,8 @@ class TwinViews:
 def rolled_poses(eyes: np.ndarray, aims: np.ndarray) -> np.ndarray:
     """(2N,4,4): each eye looking at its aim with the image's up to world up, and rolled 90 deg
     (the arm keeps a planned roll with motion.framed_views)."""
-    T = np.stack([poses_from(e[None], look_at_rotations(e[None], a))[0] for e, a in zip(eyes, aims)])
-    R = T.copy()
-    R[:, :3, 0], R[:, :3, 1] = T[:, :3, 1], -T[:, :3, 0]
-    return np.stack([T, R], axis=1).reshape(-1, 4, 4)
+    R = look_at_rotations(eyes, aims)
+    return np.stack([poses_from(eyes, R), poses_from(eyes, quarter_turn(R))], axis=1).reshape(-1, 4, 4)
 
 
 def greedy_best(S: np.ndarray, start: np.ndarray, views: int, firsts: int) -> list[tuple[float, list[int]]]:
@@ -192,7 +190,7 @@ def measure(cfg: CellConfig, pcfg: PlannersConfig, scenes: list[str], views: int
             tv = TrueViews(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points, voxel, twin_cfg.camera)
             S = np.array([tv.seen(e, a) for e, a in zip(eyes, aims)])  # one cast per candidate, all its points at once
             start = tv.seen(T0[:3, 3], T0[:3, 3] + T0[:3, 2])
-            poses = np.stack([poses_from(e[None], look_at_rotations(e[None], a))[0] for e, a in zip(eyes, aims)])
+            poses = poses_from(eyes, look_at_rotations(eyes, aims))
             first = first_step(tv, gnbv_states(cfg, pcfg, name)[0], pcfg)
         else:
             with Twin(scene, twin_cfg) as twin:

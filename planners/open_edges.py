@@ -23,7 +23,7 @@ from planners import nbv, raycast
 from planners.base import ScanState, ViewPlan
 from planners.discs import discs
 from planners.config import NBVConfig
-from planners.views import in_image, look_at_rotations, poses_from, sphere_lattice
+from planners.views import in_image, look_at_rotations, poses_from, quarter_turn, sphere_lattice
 
 #: centroid shift (share of the radius) halfway between a surface's inside (0) and its edge (0.42)
 EDGE_SHIFT = 2.0 / (3.0 * np.pi)
@@ -171,7 +171,7 @@ class EdgeViews:
         plan and, for a view, the planner's record of it (step, ranked eyes, the point each looks at).
         ``failed(eyes, centre)``: mask of positions the runner could not reach for that centre."""
         t0 = time.perf_counter()
-        planned = (self.plan_joint(state, occupied, self.surface_voxel, failed) if self.joint
+        planned = (self.plan_joint(state, occupied, failed) if self.joint
                    else self.plan(state, occupied))
         stop.timings["edges_s"] = time.perf_counter() - t0
         if planned is None:
@@ -236,13 +236,12 @@ class EdgeViews:
         gain = np.where(seen, more, 0.0).sum(axis=1)
         return (gain, (seen & (more >= EDGE_TURN)).sum(axis=1)) if counted else gain
 
-    def plan_joint(self, state: ScanState, occupied: nbv.OccupiedIndex | None = None, surface_voxel: float = 0.002,
-                   failed=None):
+    def plan_joint(self, state: ScanState, occupied: nbv.OccupiedIndex | None = None, failed=None):
         """All the open paint at once: candidates round its centre, looking at it at both rolls,
         each scored on every open point (``round_the_edge``), so one view that sees round many
         borders (a cage's rods seen from above past their flanks) beats one per border. Worth a
         view only when it sees as many points ``EDGE_TURN`` further round as line a border
-        ``min_view_growth_voxels`` cells long (points ``surface_voxel`` apart); never from a
+        ``min_view_growth_voxels`` cells long (points ``self.surface_voxel`` apart); never from a
         direction already taken (``revisit_angle_deg``), nor from where ``failed(eyes, centre)`` says the
         runner could not reach. (poses, Q, gain, centre) or None."""
         cfg, grid = self.cfg, state.grid
@@ -263,9 +262,7 @@ class EdgeViews:
         if len(eyes) == 0:
             return None
         R = look_at_rotations(eyes, c)
-        turned = R.copy()
-        turned[:, :, 0], turned[:, :, 1] = R[:, :, 1], -R[:, :, 0]  # the image's wide axis the other way
-        eyes, R = np.concatenate([eyes, eyes]), np.concatenate([R, turned])
+        eyes, R = np.concatenate([eyes, eyes]), np.concatenate([R, quarter_turn(R)])
         if state.reachable is not None and cfg.reach_prefilter:
             keep = state.reachable(eyes, R[:, :, 2])
             eyes, R = eyes[keep], R[keep]
@@ -273,7 +270,7 @@ class EdgeViews:
             return None
         gain, count = self._gain(state, eyes, R, edges, state.drawing.origin[edges.index].astype(np.float64),
                                  occupied, counted=True)
-        worth = count * surface_voxel >= cfg.min_view_growth_voxels * grid.voxel
+        worth = count * self.surface_voxel >= cfg.min_view_growth_voxels * grid.voxel
         if not worth.any():
             return None
         eyes, R, gain = eyes[worth], R[worth], gain[worth]

@@ -42,6 +42,15 @@ def roll_along(rotations: np.ndarray, directions: np.ndarray) -> np.ndarray:
     return R
 
 
+def quarter_turn(rotations: np.ndarray) -> np.ndarray:
+    """The same optical axes, each image turned 90 deg about it: the wide axis where the narrow one
+    was (a framed view is scored at both)."""
+    R0 = np.asarray(rotations, dtype=np.float64)
+    R = R0.copy()
+    R[..., 0], R[..., 1] = R0[..., 1], -R0[..., 0]
+    return R
+
+
 def poses_from(eyes: np.ndarray, rotations: np.ndarray) -> np.ndarray:
     T = np.tile(np.eye(4), (len(eyes), 1, 1))
     T[:, :3, :3] = rotations

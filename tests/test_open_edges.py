@@ -148,21 +148,21 @@ def test_joint_edge_views_score_every_border_at_once_and_stop_when_none_is_worth
 
     cfg, state = _rod_state(band=0.04)  # 8 cm of paint along the rod: each flank's border is worth a view
     joint = cfg.nbv.model_copy(update={"joint_edge_views": True})
-    poses, q, gain, centre = EdgeViews(joint, cfg.grid.surface_voxel_m).plan_joint(state, None, 0.002)
+    poses, q, gain, centre = EdgeViews(joint, cfg.grid.surface_voxel_m).plan_joint(state, None)
     assert abs(centre[1]) < 0.003 and np.all(np.diff(q) <= 1e-12)
     eye = poses[0, :3, 3]
     assert abs(eye[1]) > 0.15 and eye[2] < 0.45, "from a flank's side, lower down"
     assert gain[0] == pytest.approx(EdgeViews(cfg.nbv).plan(state)[2][0], rel=0.05), "as much as one flank's own best"
     taken = dataclasses.replace(state, viewpoints=np.vstack([state.viewpoints, eye]))
-    again = EdgeViews(joint, 0.002).plan_joint(taken, None, 0.002)[0][:, :3, 3]
+    again = EdgeViews(joint, 0.002).plan_joint(taken, None)[0][:, :3, 3]
     u = (eye - centre) / np.linalg.norm(eye - centre)
     w = (again - centre) / np.linalg.norm(again - centre, axis=1, keepdims=True)
     assert np.degrees(np.arccos(np.clip(w @ u, -1, 1))).min() >= cfg.nbv.revisit_angle_deg - 1e-6
     near_top = lambda eyes, c: np.linalg.norm(eyes - eye, axis=1) < 1e-3  # noqa: E731 (the runner failed there)
-    assert not np.any(np.linalg.norm(EdgeViews(joint, 0.002).plan_joint(state, None, 0.002, near_top)[0][:, :3, 3]
+    assert not np.any(np.linalg.norm(EdgeViews(joint, 0.002).plan_joint(state, None, near_top)[0][:, :3, 3]
                                      - eye, axis=1) < 1e-3)
     strict = joint.model_copy(update={"min_view_growth_voxels": 10_000})
-    assert EdgeViews(strict, 0.002).plan_joint(state, None, 0.002) is None
+    assert EdgeViews(strict, 0.002).plan_joint(state, None) is None
 
 
 def test_the_cone_does_not_turn_round_the_end_of_a_rod_s_seen_front():
