@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from planners import nbv, raycast
 from planners.base import ScanState, ViewPlan
 from planners.discs import discs
+from planners.growth import EdgeYield
 from planners.config import NBVConfig
 from planners.views import in_image, look_at_rotations, poses_from, quarter_turn, sphere_lattice
 
@@ -163,6 +164,7 @@ class EdgeViews:
         self.joint = joint  # plan_joint, not one view per group
         self._lattice = sphere_lattice(cfg.search_radius_m, cfg.min_standoff_m, cfg.candidate_spacing_m)
         self.looked_at: list[tuple[np.ndarray, np.ndarray]] = []  # (centre, way out) of each group planned for
+        self.edge_yield = EdgeYield(surface_voxel)  # joint plans: drawing found per point counted on
 
     def or_stop(self, state: ScanState, book, stop: ViewPlan, occupied: nbv.OccupiedIndex | None = None,
                 failed=None) -> tuple[ViewPlan, tuple | None]:
@@ -245,6 +247,7 @@ class EdgeViews:
         direction already taken (``revisit_angle_deg``), nor from where ``failed(eyes, centre)`` says the
         runner could not reach. (poses, Q, gain, centre) or None."""
         cfg, grid = self.cfg, state.grid
+        self.edge_yield.measure(state.step, state.camera_pose, grid)
         if len(state.drawing) == 0:
             return None
         edges = open_paint_edges(state.drawing.xyz, state.drawing.origin, state.surface.xyz, cfg.open_edge_radius_m)
@@ -270,10 +273,12 @@ class EdgeViews:
             return None
         gain, count = self._gain(state, eyes, R, edges, state.drawing.origin[edges.index].astype(np.float64),
                                  occupied, counted=True)
-        worth = count * self.surface_voxel >= cfg.min_view_growth_voxels * grid.voxel
+        worth = self.edge_yield.expected(count, grid) >= cfg.min_view_growth_voxels
         if not worth.any():
             return None
-        eyes, R, gain = eyes[worth], R[worth], gain[worth]
+        eyes, R, gain, count = eyes[worth], R[worth], gain[worth], count[worth]
         q = nbv.quality(gain, np.linalg.norm(eyes - state.camera_pose[:3, 3], axis=1), cfg.lam)
         rank = np.argsort(-q, kind="stable")
-        return poses_from(eyes[rank], R[rank]), q[rank], gain[rank], c
+        poses = poses_from(eyes[rank], R[rank])
+        self.edge_yield.planned(state.step, poses, count[rank], grid)
+        return poses, q[rank], gain[rank], c

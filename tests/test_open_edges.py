@@ -184,3 +184,40 @@ def test_the_cone_does_not_turn_round_the_end_of_a_rod_s_seen_front():
     surf, paint, eye = rod(0.03, 25.0)
     axis = round_edge_axis(paint, eye, surf, np.array([0.003, 0.0, 0.03]), 0.03, 0.005)
     assert axis is not None and axis[0] > 0.6 and axis[2] > 0.6
+
+
+def test_joint_edge_views_end_when_the_last_one_found_less_than_it_was_counted_on_for():
+    """The first joint plan is judged by the prior (one drawing cell per cell-long border seen
+    round). The view taken is then measured: where it found nothing, the same open paint is not
+    worth another view; where it found as much as its count promised, the next is offered. A
+    camera that is not at any planned candidate (the runner went elsewhere) measures nothing."""
+    import copy
+    import dataclasses
+
+    from planners.open_edges import EdgeViews
+
+    cfg, state = _rod_state(band=0.04)
+    joint = cfg.nbv.model_copy(update={"joint_edge_views": True})
+    after = lambda grid, pose: dataclasses.replace(state, step=state.step + 1, grid=grid,  # noqa: E731
+                                                   camera_pose=pose,
+                                                   viewpoints=np.vstack([state.viewpoints, pose[:3, 3]]))
+
+    views = EdgeViews(joint, cfg.grid.surface_voxel_m)
+    poses = views.plan_joint(state, None)[0]
+    assert views.edge_yield.per_point is None
+    assert views.plan_joint(after(state.grid, poses[0]), None) is None, "it found nothing: no more edge views"
+    assert views.edge_yield.per_point == 0.0
+
+    views = EdgeViews(joint, cfg.grid.surface_voxel_m)
+    poses = views.plan_joint(state, None)[0]
+    grown = copy.deepcopy(state.grid)
+    free = np.argwhere(~grown.drawing)[:40]
+    grown.drawing[free[:, 0], free[:, 1], free[:, 2]] = True  # 40 new drawing cells: more than promised
+    assert views.plan_joint(after(grown, poses[0]), None) is not None
+    assert views.edge_yield.per_point > cfg.grid.surface_voxel_m / cfg.grid.voxel_m
+
+    views = EdgeViews(joint, cfg.grid.surface_voxel_m)
+    views.plan_joint(state, None)
+    elsewhere = np.eye(4)
+    elsewhere[:3, 3] = [0.0, 0.6, 0.9]
+    assert views.plan_joint(after(state.grid, elsewhere), None) is not None and views.edge_yield.per_point is None
