@@ -11,7 +11,7 @@ from planners.config import ConfigError
 
 def _scan(args: argparse.Namespace) -> int:
     from cellctl.config import load_cell_config
-    from cellctl.scan_run import run_scan_in_twin
+    from cellctl.scan.run import run_scan_in_twin
 
     from drivers.interfaces import DeviceError
 
@@ -29,15 +29,15 @@ def _scan(args: argparse.Namespace) -> int:
 
 
 def _bench(args: argparse.Namespace) -> int:
-    from cellctl.bench import cli_bench
+    from cellctl.bench.scans import cli_bench
 
     return cli_bench(args)
 
 
 def _serve(args: argparse.Namespace) -> int:
     from cellctl.config import load_cell_config
-    from cellctl.service import serve
-    from cellctl.store import StoreError
+    from cellctl.service.server import serve
+    from cellctl.service.store import StoreError
 
     cfg, cfg_path = load_cell_config(args.config)
     try:
@@ -48,19 +48,19 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _doctor(args: argparse.Namespace) -> int:
-    from cellctl.doctor import cli_doctor
+    from cellctl.commissioning.doctor import cli_doctor
 
     return cli_doctor(args)
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    from cellctl.handeye import cli_board, cli_hand_eye
+    from cellctl.commissioning.handeye import cli_board, cli_hand_eye
 
     return cli_hand_eye(args) if args.what == "hand-eye" else cli_board(args)
 
 
 def _client(args: argparse.Namespace):
-    from cellctl.client import CellClient
+    from cellctl.service.client import CellClient
 
     return CellClient(args.cell, args.connect or ["tcp/127.0.0.1:7447"], timeout_s=args.reply_timeout,
                       zenoh_config_file=args.zenoh_config)
@@ -70,7 +70,7 @@ def _remote(fn):
     """Client subcommands: a refusal, no reply or no network is one clear line and an exit status
     (2 refused, 3 no reply/unreachable), never a traceback."""
     def run(args: argparse.Namespace) -> int:
-        from cellctl.client import CellError, CellUnreachable, NoReply
+        from cellctl.service.client import CellError, CellUnreachable, NoReply
 
         try:
             with _client(args) as client:
@@ -421,7 +421,7 @@ def _record(args: argparse.Namespace) -> int:
 
 
 def _router(args: argparse.Namespace) -> int:
-    from cellctl.router import main as router_main
+    from cellctl.service.router import main as router_main
 
     argv = (["--config", args.config] if args.config else []) + [a for e in (args.listen or []) for a in ("--listen", e)]
     return router_main(argv + (["--users", args.users] if args.users else []))

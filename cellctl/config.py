@@ -66,7 +66,7 @@ class ServiceConfig(BaseModel):
     job_profile: Literal["scan", "initial_view"] = Field(
         "scan", description="scan: every job is the full scan and cut; initial_view: every job only builds the twin "
         "and captures the scene's initial view (no motion, no planning, no cut), a cheap real job for load tests "
-        "(cellctl.view_job); never on a production cell")
+        "(cellctl.scan.initial_view); never on a production cell")
 
     @model_validator(mode="after")
     def _client_needs_a_router(self) -> "ServiceConfig":
@@ -85,7 +85,7 @@ class FciSimConfig(BaseModel):
     simulator: Literal["embedded", "external"] = Field(
         "embedded", description="embedded: the cell starts franky-sim itself (a child process) on the first free "
         "loopback address from arm.host on, the arm at twin.home_q; external: a franky-sim server already "
-        "runs at arm.host (`python -m cellctl.fcisim`)")
+        "runs at arm.host (`python -m cellctl.scan.fcisim`)")
     start_timeout_s: float = Field(60.0, gt=0, le=600, description="embedded: longest wait for the simulator")
 
 

@@ -9,10 +9,10 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from cellctl import api, apidoc
-from cellctl.api import (ERROR_CODES, MAX_PAYLOAD_BYTES, ApiError, CancelRequest, ErrorReply, JobEvent, Keys,
-                         ListJobsRequest, ScanDrawingRequest, parse_payload)
 from cellctl.config import CellConfig, ServiceConfig
+from cellctl.service import api, apidoc
+from cellctl.service.api import (ERROR_CODES, MAX_PAYLOAD_BYTES, ApiError, CancelRequest, ErrorReply, JobEvent, Keys,
+                                 ListJobsRequest, ScanDrawingRequest, parse_payload)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -94,7 +94,7 @@ def test_error_codes_are_a_closed_set():
 
 
 def test_planner_names_match_the_scan():
-    from cellctl.scan import PLANNERS
+    from cellctl.scan.job import PLANNERS
 
     assert set(api.PLANNER_NAMES) == set(PLANNERS)
     assert set(ScanDrawingRequest.model_fields["planner"].annotation.__args__) == set(PLANNERS)
@@ -120,7 +120,7 @@ def test_keys():
 
 def test_api_doc_is_generated_from_the_models():
     committed = (ROOT / "docs" / "API.md").read_text()
-    assert committed == apidoc.render(), "docs/API.md is stale: run `python -m cellctl.apidoc > docs/API.md`"
+    assert committed == apidoc.render(), "docs/API.md is stale: run `python -m cellctl.service.apidoc > docs/API.md`"
     for key in ("jobs/submit", "jobs/<job_id>/cancel", "jobs/<job_id>/events", "/status", "/alive"):
         assert key in committed
     assert "no reply within" in committed and "access control" in committed

@@ -23,13 +23,13 @@ def test_arm_contract(arm_under_test, case):
 
 
 def test_a_job_that_fails_on_an_arm_error_leaves_the_arm_stopped_and_recovered(arm_under_test):
-    """What ScanJob does after any error (cellctl.scan.stop_and_recover): the arm is stopped, and a
+    """What ScanJob does after any error (cellctl.scan.job.stop_and_recover): the arm is stopped, and a
     Franka that now refuses motions until recover_from_errors is recovered and the job records it, so
     the next job can move; the twin has nothing to recover."""
     import numpy as np
 
     from arm_contract import HOME_Q, run_in_thread, smooth_trajectory, wait_until_moving
-    from cellctl.scan import stop_and_recover
+    from cellctl.scan.job import stop_and_recover
     from drivers.interfaces import TrajectoryError
 
     h = arm_under_test

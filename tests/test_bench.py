@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellctl import bench, bench_report
-from cellctl.bench_report import PAPER_TABLE_II
-from cellctl.scan import PLANNERS, ScanResult
+from cellctl.bench import report, scans
+from cellctl.bench.report import PAPER_TABLE_II
+from cellctl.scan.job import PLANNERS, ScanResult
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -61,7 +61,7 @@ def doc():
 
 
 def test_medians_over_error_free_seeds(doc):
-    aggs = bench_report.aggregate(doc)
+    aggs = report.aggregate(doc)
     g = aggs[("smooth_cylinder", "gnbv")]
     assert (g.n, g.n_ok) == (3, 3)
     assert g.viewpoints == 4 and g.views == 5
@@ -78,7 +78,7 @@ def test_medians_over_error_free_seeds(doc):
 
 
 def test_ratio_table(doc):
-    rows = {r["scene"]: r for r in bench_report.ratio_rows(doc)}
+    rows = {r["scene"]: r for r in report.ratio_rows(doc)}
     sc = rows["smooth_cylinder"]
     assert sc["cnbv_gnbv_step"] == pytest.approx((40.0 / 3) / 1.0)
     assert sc["paper_cnbv_gnbv_step"] == pytest.approx(202.0 / 9.6)
@@ -90,7 +90,7 @@ def test_ratio_table(doc):
 
 
 def test_markdown_has_paper_numbers_error_rows_and_ratios(doc):
-    md = bench_report.render_markdown(doc)
+    md = report.render_markdown(doc)
     lines = md.splitlines()
     g = next(ln for ln in lines if ln.startswith("| smooth_cylinder (cat. 1) | G-NBV |"))
     cells = [c.strip() for c in g.strip("|").split("|")]
@@ -133,9 +133,9 @@ def test_report_from_json_alone_picks_median_seed(doc, tmp_path):
             r["run_dir"] = f"runs/seed{r['seed']}/run{i}"
             _png(tmp_path / r["run_dir"] / "coverage.png", (10 * i, 0, 0))
     (tmp_path / "bench.json").write_text(json.dumps(doc))
-    assert bench_report.median_coverage_run(doc, "smooth_cylinder", "gnbv", tmp_path)["seed"] == 1
-    assert bench_report.median_coverage_run(doc, "smooth_cylinder", "global", tmp_path)["error"] is None
-    assert bench_report.median_coverage_run(doc, "smooth_cylinder", "enpv", tmp_path) is None
+    assert report.median_coverage_run(doc, "smooth_cylinder", "gnbv", tmp_path)["seed"] == 1
+    assert report.median_coverage_run(doc, "smooth_cylinder", "global", tmp_path)["error"] is None
+    assert report.median_coverage_run(doc, "smooth_cylinder", "enpv", tmp_path) is None
     from cellctl.cli import main
 
     assert main(["bench", "--report", str(tmp_path / "bench.json")]) == 0
@@ -147,34 +147,34 @@ def test_load_bench_rejects_other_files(tmp_path):
     p = tmp_path / "x.json"
     p.write_text(json.dumps({"schema_version": 2, "runs": []}))
     with pytest.raises(ValueError, match="schema_version 1"):
-        bench_report.load_bench(p)
+        report.load_bench(p)
 
 
 # --- the bench loop with a fake scanner ---------------------------------------------------------------
 
 def test_parse_list():
     allowed = ("a", "b", "c")
-    assert bench.parse_list(None, allowed, "x", ("b",)) == ["b"]
-    assert bench.parse_list("all", allowed, "x", ("b",)) == ["a", "b", "c"]
-    assert bench.parse_list("c, a,c", allowed, "x", ()) == ["c", "a"]
+    assert scans.parse_list(None, allowed, "x", ("b",)) == ["b"]
+    assert scans.parse_list("all", allowed, "x", ("b",)) == ["a", "b", "c"]
+    assert scans.parse_list("c, a,c", allowed, "x", ()) == ["c", "a"]
     with pytest.raises(ValueError, match="unknown 'd'"):
-        bench.parse_list("a,d", allowed, "x", ())
+        scans.parse_list("a,d", allowed, "x", ())
 
 
 def test_run_record_uses_the_papers_viewpoint_count():
     r = ScanResult("s", "gnbv", steps=5, planning_s=8.0, displacement_m=0.5, coverage_hit=3, coverage_total=4,
                    coverage_percent=75.0, terminated_by="quality")
-    rec = bench.run_record("s", 1, "gnbv", 0, r, "runs/x", 3.0, 12.0)
+    rec = scans.run_record("s", 1, "gnbv", 0, r, "runs/x", 3.0, 12.0)
     assert rec["views"] == 5 and rec["viewpoints"] == 4 and rec["step_s"] == 2.0
     assert rec["coverage"] == {"hit": 3, "total": 4, "percent": 75.0}
-    only_initial = bench.run_record("s", 1, "gnbv", 0, ScanResult("s", "gnbv", steps=1, planning_s=1.0),
+    only_initial = scans.run_record("s", 1, "gnbv", 0, ScanResult("s", "gnbv", steps=1, planning_s=1.0),
                                     None, 1.0, None)
     assert only_initial["viewpoints"] == 0 and only_initial["step_s"] is None
 
 
 def test_bench_goes_on_after_failures(monkeypatch, tmp_path):
     """A planner that does not import, one that raises, one whose scan reports an error: all rows kept."""
-    import cellctl.scan_run
+    import cellctl.scan.run
     import sim.scenes
     from cellctl.config import load_cell_config
 
@@ -195,12 +195,12 @@ def test_bench_goes_on_after_failures(monkeypatch, tmp_path):
             r.error, r.terminated_by = "Unreachable: nowhere to go", "error"
         return r, run_dir
 
-    monkeypatch.setattr(cellctl.scan_run, "run_scan_in_twin", fake_scan)
+    monkeypatch.setattr(cellctl.scan.run, "run_scan_in_twin", fake_scan)
     monkeypatch.setattr(sim.scenes, "load_scene", lambda name: _Scene())
     monkeypatch.setitem(PLANNERS, "cnbv", "planners.no_such_module:Nope")
     cfg, cfg_path = load_cell_config(None)
     err = io.StringIO()
-    doc = bench.run_bench(cfg, cfg_path, ["smooth_cylinder"], ["gnbv", "cnbv", "global"], 2, tmp_path, stream=err)
+    doc = scans.run_bench(cfg, cfg_path, ["smooth_cylinder"], ["gnbv", "cnbv", "global"], 2, tmp_path, stream=err)
     runs = {(r["planner"], r["seed"]): r for r in doc["runs"]}
     assert len(runs) == 6 and doc["complete"]
     assert runs[("gnbv", 0)]["error"] is None and runs[("gnbv", 0)]["viewpoints"] == 2
@@ -275,20 +275,20 @@ def test_equal_coverage_compares_views_and_time_to_the_same_level():
     runs += [run("global", s, [30, 50, 60, 70, 80, 85, 90, 90], [2, 4, 6, 8, 10, 12, 14, 15]) for s in range(2)]
     runs.append(run("global", 2, [30, 89], [2, 4]))
     doc = _doc(runs, scenes=("smooth_cylinder",), planners=("gnbv", "global"))
-    (row,) = bench_report.equal_coverage_rows(doc)
+    (row,) = report.equal_coverage_rows(doc)
     assert row["level"] == 90
     assert row["gnbv"] == {"reached": 3, "runs": 3, "viewpoints": 2, "planning_s": 1.5}
     assert row["global"]["reached"] == 2 and row["global"]["viewpoints"] == 6 and row["global"]["planning_s"] == 12
     assert row["viewpoints_ratio"] == 3 and row["planning_ratio"] == 8
-    md = bench_report.render_markdown(doc)
+    md = report.render_markdown(doc)
     assert "| smooth_cylinder (cat. 1) | 90.0 | 2 (3/3) | 6 (2/3) | 3.00 | 1.50 | 12.00 | 8.00 |" in md
-    assert bench_report.to_reach({"coverage_by_view": [50, 60]}, 90) == (None, None)
-    assert bench_report.to_reach({"coverage_by_view": [95], "planning_s_by_view": [1.0]}, 90) == (0, 0.0)
+    assert report.to_reach({"coverage_by_view": [50, 60]}, 90) == (None, None)
+    assert report.to_reach({"coverage_by_view": [95], "planning_s_by_view": [1.0]}, 90) == (0, 0.0)
 
 
 def test_progress_eta_per_planner():
     err = io.StringIO()
-    bar = bench.Progress(["gnbv", "cnbv", None, "gnbv", "cnbv"], err)
+    bar = scans.Progress(["gnbv", "cnbv", None, "gnbv", "cnbv"], err)
     bar.start("a")
     assert "ETA ?" in err.getvalue()
     bar.finish("a", {"wall_s": 10.0, "error": None, "views": 3, "coverage": {"percent": 90.0}, "planning_s": 1.0})

@@ -15,10 +15,10 @@ import pytest
 import yaml
 
 from arm_contract import free_loopback_address
-from cellctl.client import CellError
+from cellctl.service.client import CellError
 from cellctl.config import load_cell_config
-from cellctl.doctor import UDEV_RULES, UDEV_RULES_ALTERNATIVES
-from cellctl.service_bench import ROOT, ServiceProcess
+from cellctl.commissioning.doctor import UDEV_RULES, UDEV_RULES_ALTERNATIVES
+from cellctl.service.loopback import ROOT, ServiceProcess
 from configs import CONFIG_DIR
 from planners.config import ConfigError
 
@@ -148,7 +148,7 @@ def test_the_twin_mirrors_joints_beyond_its_own_limits_and_refuses_junk():
     import numpy as np
 
     from arm_contract import HOME_Q, _far_box_scene
-    from cellctl.fcisim import FrankySim
+    from cellctl.scan.fcisim import FrankySim
     from drivers.panda.safety import ChainKinematics
     from sim.config import TwinConfig
     from sim.twin import Twin
@@ -176,7 +176,7 @@ def test_a_module_being_imported_by_another_thread_counts_as_available(monkeypat
     import sys
     import types
 
-    from cellctl.devices import module_available
+    from cellctl.scan.devices import module_available
 
     half = types.ModuleType("scrapcell_half_imported")
     half.__spec__ = None  # what a C extension's module looks like while its import runs

@@ -55,7 +55,8 @@ def router(tmp_path_factory):
     pw = {u: (d / f"{u}.password").read_text().strip() for u in users}
     assert len(set(pw.values())) == len(users) and all(len(p) >= 16 for p in pw.values())
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    proc = subprocess.Popen([sys.executable, "-m", "cellctl.router", "--config", str(ROOT / "deploy/zenoh/router.json5"),
+    proc = subprocess.Popen([sys.executable, "-m", "cellctl.service.router",
+                             "--config", str(ROOT / "deploy/zenoh/router.json5"),
                              "--listen", endpoint, "--users", str(d / "zenoh-users.txt")],
                             cwd=ROOT, stderr=subprocess.PIPE, text=True)
     try:
@@ -82,9 +83,9 @@ def test_two_cells_behind_the_router_one_operator_and_a_viewer(router, tmp_path)
     """The yard: `cellctl router` with deploy/'s auth and ACL, two real cell services (ids sim-1 and
     sim-2) as its clients, one operator client driving both, and a viewer who may read but whose
     submit and cancel get no reply."""
-    from cellctl.api import ScanDrawingRequest
-    from cellctl.client import CellClient, NoReply
-    from cellctl.service_bench import write_config
+    from cellctl.service.api import ScanDrawingRequest
+    from cellctl.service.client import CellClient, NoReply
+    from cellctl.service.loopback import write_config
 
     endpoint, pw, _ = router
     cells = {}
@@ -143,7 +144,7 @@ def test_sessions_without_valid_credentials_are_refused(router, user, password):
 
 
 def test_router_config_errors_are_clear(tmp_path):
-    from cellctl.router import router_config
+    from cellctl.service.router import router_config
 
     with pytest.raises(ValueError, match="does not exist"):
         router_config(tmp_path / "nope.json5")
@@ -158,7 +159,7 @@ def test_router_config_errors_are_clear(tmp_path):
 def test_router_exits_on_sigterm(tmp_path):
     subprocess.run(["sh", str(ROOT / "deploy/make-users.sh"), str(tmp_path), "operator"], check=True,
                    capture_output=True, timeout=30)
-    proc = subprocess.Popen([sys.executable, "-m", "cellctl.router", "--listen", f"tcp/127.0.0.1:{free_port()}",
+    proc = subprocess.Popen([sys.executable, "-m", "cellctl.service.router", "--listen", f"tcp/127.0.0.1:{free_port()}",
                              "--users", str(tmp_path / "zenoh-users.txt")], cwd=ROOT, stderr=subprocess.PIPE, text=True)
     assert "listening" in proc.stderr.readline()
     proc.send_signal(signal.SIGTERM)

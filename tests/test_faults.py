@@ -20,9 +20,9 @@ import yaml
 from pydantic import ValidationError
 
 from cellctl.config import CellConfig, load_cell_config
-from cellctl.scan import ScanJob
-from cellctl.scan_run import run_scan_in_twin
-from cellctl.service_bench import ServiceProcess
+from cellctl.scan.job import ScanJob
+from cellctl.scan.run import run_scan_in_twin
+from cellctl.service.loopback import ServiceProcess
 from configs import CONFIG_DIR
 from drivers.interfaces import Arm, DeviceError, JointTrajectory, RGBDCamera, TrajectoryError
 from planners.config import load_planners_config

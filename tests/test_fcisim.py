@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from cellctl.scan import REACH_TOL_DEG, REACH_TOL_M
-from cellctl.service_bench import ServiceProcess
+from cellctl.scan.job import REACH_TOL_DEG, REACH_TOL_M
+from cellctl.service.loopback import ServiceProcess
 from configs import CONFIG_DIR
 
 REQUEST = {"scene": "smooth_cylinder", "max_steps": 6, "noise": False}
@@ -42,7 +42,7 @@ def children(pid: int) -> dict[int, str]:
 
 def _is_franky_sim(pid: int) -> bool:
     try:
-        return b"cellctl.fcisim" in Path(f"/proc/{pid}/cmdline").read_bytes()
+        return b"cellctl.scan.fcisim" in Path(f"/proc/{pid}/cmdline").read_bytes()
     except OSError:
         return False
 
@@ -51,7 +51,7 @@ def pure_twin_coverage(tmp_path: Path) -> tuple[float, float]:
     """The same job in the pure twin (mode sim), in process: the class the fcisim job must be in.
     (coverage %, seconds)."""
     from cellctl.config import load_cell_config
-    from cellctl.scan_run import run_scan_in_twin
+    from cellctl.scan.run import run_scan_in_twin
 
     cfg, path = load_cell_config(None)
     t0 = time.monotonic()
@@ -73,7 +73,7 @@ def test_a_scan_job_runs_through_franky_on_franky_sim(tmp_path):
     t0 = time.monotonic()
     svc.start(timeout_s=180)  # liveness bounds from here on: they fail on a hang, not on a loaded machine
     try:
-        sims = [p for p, cmd in children(svc.proc.pid).items() if "cellctl.fcisim" in cmd]
+        sims = [p for p, cmd in children(svc.proc.pid).items() if "cellctl.scan.fcisim" in cmd]
         assert len(sims) == 1, children(svc.proc.pid)
         with svc.client(timeout_s=30) as c:
             st = c.status()

@@ -26,14 +26,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pydantic import BaseModel, Field
 
-from cellctl import api
-from cellctl.api import (ERROR_CODES, MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, PLANNER_NAMES, ApiError, ApiModel,
-                         CancelRequest, CellStatus, ErrorReply, JobRecord, ListJobsRequest, ScanDrawingRequest,
-                         parse_payload)
 from cellctl.config import ServiceConfig, load_cell_config
-from cellctl.service import CellService
-from cellctl.service_bench import ServiceProcess
-from cellctl.store import JobStore
+from cellctl.service import api
+from cellctl.service.api import (ERROR_CODES, MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, PLANNER_NAMES, ApiError, ApiModel,
+                                 CancelRequest, CellStatus, ErrorReply, JobRecord, ListJobsRequest, ScanDrawingRequest,
+                                 parse_payload)
+from cellctl.service.loopback import ServiceProcess
+from cellctl.service.server import CellService
+from cellctl.service.store import JobStore
 from sim.scenes.catalog import SCENE_NAMES
 
 EXAMPLES = 1000  # distinct generated payloads per model and per endpoint, at least (the figure)

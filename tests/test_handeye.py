@@ -15,8 +15,8 @@ import pytest
 import yaml
 
 from cellctl.cli import build_parser, main
+from cellctl.commissioning.handeye import _empty_scene, calibrate_hand_eye, run_hand_eye_in_twin
 from cellctl.config import CellConfig, MotionConfig, load_cell_config
-from cellctl.handeye import _empty_scene, calibrate_hand_eye, run_hand_eye_in_twin
 from configs.charuco import CharucoBoardConfig
 from configs.poses import pose_from_xyz_rpy_deg
 from planners.config import ConfigError

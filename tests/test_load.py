@@ -2,7 +2,7 @@
 loopback, 10 Zenoh client sessions submitting 200 jobs into a queue of 8 (retrying on queue_full), a
 50 Hz open-loop poller of status, job list and job records, a subscriber to every event, the service's
 RSS sampled throughout, then its SQLite store read back. The jobs are real twin jobs of the
-`initial_view` profile (cellctl.view_job: twin built, one D435 frame rendered and turned into clouds,
+`initial_view` profile (cellctl.scan.initial_view: twin built, one D435 frame rendered and turned into clouds,
 coverage scored, result.json written), about 0.3 s each. Nothing is mocked.
 
 About 70 s with the machine otherwise idle, 85 s on 2 cores shared with other work; add -s for the
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.load_bench import LoadSpec, evaluate, markdown, run_load
+from cellctl.bench.load import LoadSpec, evaluate, markdown, run_load
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -66,8 +66,8 @@ a coded error, on loopback."""
 
     import zenoh
 
-    from cellctl.client import CellClient, CellError, NoReply
-    from cellctl.service_bench import free_port
+    from cellctl.service.client import CellClient, CellError, NoReply
+    from cellctl.service.loopback import free_port
 
     port = free_port()
     conf = zenoh.Config()
@@ -112,7 +112,7 @@ def test_a_closed_scan_recording_leaves_no_thread_behind(tmp_path):
 import os, sys
 from pathlib import Path
 import numpy as np
-from cellctl.recording import ScanRecorder
+from cellctl.scan.recording import ScanRecorder
 out = Path(sys.argv[1])
 threads = lambda: len(os.listdir("/proc/self/task"))
 ScanRecorder(out / "warm.rrd", "warm").close()  # Rerun's own runtime starts once per process

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from cellctl.oracle_bench import TrueViews, greedy_best
+from cellctl.bench.oracle import TrueViews, greedy_best
 from sim.config import D435Config
 
 
@@ -45,7 +45,7 @@ def test_gnbv_first_step_is_put_to_the_truth_of_the_stripe():
     sys.path.insert(0, str(Path(__file__).parent))
     from test_nbv_planners import _state
 
-    from cellctl.oracle_bench import first_step
+    from cellctl.bench.oracle import first_step
 
     cfg, state = _state()
     table = trimesh.creation.box([0.4, 0.7, 0.02])
@@ -68,8 +68,8 @@ def test_the_twins_own_frames_lose_thin_rods_silhouettes_that_a_mesh_cast_keeps(
     by much; a camera looking away shows nothing. Both rolls of a pose look the same way."""
     from pathlib import Path
 
+    from cellctl.bench.oracle import TwinViews, rolled_poses
     from cellctl.config import load_cell_config
-    from cellctl.oracle_bench import TwinViews, rolled_poses
     from planners.config import load_planners_config
     from sim.scenes import load_scene
     from sim.twin import Twin

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cellctl.config import load_cell_config
-from cellctl.scan_run import run_scan_in_twin
+from cellctl.scan.run import run_scan_in_twin
 from sim.scenes import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -169,7 +169,7 @@ def test_invalid_cell_config_is_refused_naming_the_field(tmp_path):
 def test_one_capture_gives_grid_states_and_a_frontier(cell):
     """After the first view of smooth_cylinder: the painted surface is occupied, the air in front of
     the camera free, the pipe's inside unknown, and the drawing's frontier is not empty."""
-    from cellctl.scan import ScanJob
+    from cellctl.scan.job import ScanJob
     from planners.config import load_planners_config
     from planners.metrics import coverage
     from sim.twin import Twin

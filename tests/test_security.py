@@ -21,9 +21,9 @@ import pytest
 import zenoh
 from test_deploy import ROOT, _creds, free_port, router  # noqa: F401 - router: the module-scoped fixture
 
-from cellctl.api import MAX_MESSAGE_BYTES, CellStatus, ErrorReply
-from cellctl.client import CellClient, CellError
-from cellctl.service_bench import ServiceProcess, write_config
+from cellctl.service.api import MAX_MESSAGE_BYTES, CellStatus, ErrorReply
+from cellctl.service.client import CellClient, CellError
+from cellctl.service.loopback import ServiceProcess, write_config
 from configs import CONFIG_DIR
 
 SCENES = CONFIG_DIR / "scenes"
@@ -117,7 +117,7 @@ def _serves(s: zenoh.Session, key: str, payload: bytes | None = None) -> list[by
 # --- the router's own limits -----------------------------------------------------------------------
 def test_the_shipped_router_config_caps_messages_sessions_and_commands():
     """Read the way `cellctl router` reads it: the caps are in the shipped file, not only in a test."""
-    from cellctl.router import router_config
+    from cellctl.service.router import router_config
 
     cfg = router_config(ROOT / "deploy/zenoh/router.json5")
     get = lambda key: json.loads(cfg.get_json(key))  # noqa: E731
@@ -407,7 +407,7 @@ def test_scene_dirs_default_and_relative_entries_resolve_against_the_config_file
     """The default is scenes/ beside the config (configs/scenes for the shipped one); a symlink inside that
     points inside is followed, and the job gets the resolved path."""
     from cellctl.config import ServiceConfig, load_cell_config
-    from cellctl.service import CellService
+    from cellctl.service.server import CellService
 
     cfg, path = load_cell_config(CONFIG_DIR / "cell.sim.yaml")
     assert cfg.service.scene_dirs == ["scenes"]

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.client import CellClient, CellError, NoReply
-from cellctl.service_bench import ROOT, ServiceProcess, free_port
-from cellctl.store import JobStore
+from cellctl.service.client import CellClient, CellError, NoReply
+from cellctl.service.loopback import ROOT, ServiceProcess, free_port
+from cellctl.service.store import JobStore
 
 SHORT = {"scene": "smooth_cylinder", "max_steps": 2, "noise": False}
 LONG = {"scene": "smooth_cylinder", "max_steps": 12, "noise": False}  # cancelled or killed long before its end
@@ -234,8 +234,8 @@ def test_client_reports_no_reply_clearly(cell):
 def test_a_job_over_its_timeout_fails_in_process(tmp_path):
     """The service class in this process (same code as `serve`): the job timeout cancels the scan."""
     from cellctl.config import load_cell_config
-    from cellctl.service import CellService
-    from cellctl.service_bench import write_config
+    from cellctl.service.loopback import write_config
+    from cellctl.service.server import CellService
 
     port = free_port()
     cfg, cfg_path = load_cell_config(write_config(tmp_path / "cell.yaml", port, tmp_path / "data", job_timeout_s=1.0))

@@ -8,8 +8,8 @@ import threading
 
 import pytest
 
-from cellctl.api import Artifacts, Progress, ResultSummary, ScanDrawingRequest
-from cellctl.store import JobStore, StoreError
+from cellctl.service.api import Artifacts, Progress, ResultSummary, ScanDrawingRequest
+from cellctl.service.store import JobStore, StoreError
 
 REQ = ScanDrawingRequest(scene="smooth_cylinder", max_steps=2, noise=False)
 

@@ -23,17 +23,17 @@ from pathlib import Path
 
 import zenoh
 
-from cellctl.api import (MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, ApiError, Artifacts, CancelReply, CancelRequest,
-                         CellStatus, JobEvent, JobList, Keys, ListJobsRequest, Progress, ResultSummary,
-                         ScanDrawingRequest, SubmitReply, dumps, parse_payload)
-from cellctl.artifacts import _default as _json_default
-from cellctl.client import zenoh_error
 from cellctl.config import CellConfig, ServiceConfig
-from cellctl.devices import describe as describe_devices
-from cellctl.devices import module_available
-from cellctl.store import JobStore, StoreError, now_iso
+from cellctl.scan.artifacts import _default as _json_default
+from cellctl.scan.devices import describe as describe_devices
+from cellctl.scan.devices import module_available
+from cellctl.service.api import (MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, ApiError, Artifacts, CancelReply, CancelRequest,
+                                 CellStatus, JobEvent, JobList, Keys, ListJobsRequest, Progress, ResultSummary,
+                                 ScanDrawingRequest, SubmitReply, dumps, parse_payload)
+from cellctl.service.client import zenoh_error
+from cellctl.service.store import JobStore, StoreError, now_iso
 
-log = logging.getLogger("cellctl.service")
+log = logging.getLogger("cellctl.service.server")
 JSON = zenoh.Encoding.APPLICATION_JSON
 READINESS_PERIOD_S = 10.0  # fcisim/real: the arm and camera are probed this often while no job runs
 
@@ -385,7 +385,7 @@ class CellService:
         like a robot, so the arm keeps its pose between jobs and can be probed). Then the first readiness
         check, before the cell answers anyone."""
         if self.cfg.mode == "fcisim" and self.cfg.fcisim.simulator == "embedded":
-            from cellctl.fcisim import FrankySim
+            from cellctl.scan.fcisim import FrankySim
             from drivers.interfaces import DeviceError
 
             sim = FrankySim(self.cfg.arm.host, self.cfg.twin.home_q, self.cfg.fcisim.start_timeout_s)
@@ -401,7 +401,7 @@ class CellService:
     def readiness(self):
         rd = self._readiness
         if rd is None:  # sim (static), or before the first check
-            from cellctl.devices import Readiness
+            from cellctl.scan.devices import Readiness
 
             ok = module_available("pybullet")
             if self.cfg.mode == "sim":
@@ -410,7 +410,7 @@ class CellService:
         return rd
 
     def _refresh_readiness(self, *, blocking: bool = True) -> None:
-        from cellctl.devices import check_readiness
+        from cellctl.scan.devices import check_readiness
 
         if self.cfg.mode == "sim":
             return
@@ -422,7 +422,7 @@ class CellService:
                 status = getattr(sim.proc, "returncode", None)
                 self._sim_error = f"the embedded franky-sim exited (status {status}); restart the service"
             if self._sim_error:
-                from cellctl.devices import Readiness
+                from cellctl.scan.devices import Readiness
 
                 rd = Readiness(False, True, self._sim_error, "twin renderer posed from the arm")
             else:
@@ -506,9 +506,9 @@ class CellService:
                 self._recheck.set()  # the job may have found the arm or camera gone
 
     def _run(self, ctl: JobControl) -> None:
-        from cellctl.scan import StepRecord
-        from cellctl.scan_run import run_scan_in_twin
-        from cellctl.view_job import run_initial_view
+        from cellctl.scan.initial_view import run_initial_view
+        from cellctl.scan.job import StepRecord
+        from cellctl.scan.run import run_scan_in_twin
 
         job_id = ctl.job_id
         rec = self.store.get(job_id)
@@ -605,7 +605,7 @@ def cut_warning(summary: ResultSummary | None) -> str | None:
 
 
 def _detail(loc: str, msg: str):
-    from cellctl.api import ErrorDetail
+    from cellctl.service.api import ErrorDetail
 
     return ErrorDetail(loc=loc, msg=msg)
 

@@ -27,8 +27,8 @@ import numpy as np
 import open3d as o3d
 from scipy.stats import spearmanr
 
+from cellctl.bench.scoring import gnbv_states
 from cellctl.config import CellConfig
-from cellctl.scoring_bench import gnbv_states
 from planners.clouds import color_mask, frame_to_base_cloud, voxel_keys
 from planners.config import PlannersConfig
 from planners.gnbv import GuidedNBV

@@ -1,5 +1,5 @@
 """`cellctl bench`: every (scene, planner, seed) scanned in the twin, one run folder each, collected in
-bench.json and reported side by side with the paper's Table II (see cellctl/bench_report.py).
+bench.json and reported side by side with the paper's Table II (see cellctl/bench/report.py).
 
 Runs are sequential in this process, so timings are not skewed by runs competing for cores. A run
 that fails (planner import error, exception, or `ScanResult.error`) becomes an error row; the bench
@@ -11,10 +11,7 @@ from __future__ import annotations
 import importlib
 import itertools
 import math
-import os
-import platform
 import resource
-import subprocess
 import sys
 import time
 import tracemalloc
@@ -22,9 +19,10 @@ from datetime import datetime
 from pathlib import Path
 from typing import TextIO
 
-from cellctl.artifacts import write_json
+from cellctl.bench.machine import code_info, machine_info
 from cellctl.config import CellConfig
-from cellctl.scan import PLANNERS, ScanResult
+from cellctl.scan.artifacts import write_json
+from cellctl.scan.job import PLANNERS, ScanResult
 
 SCHEMA_VERSION = 1
 DEFAULT_PLANNERS: tuple[str, ...] = ("enpv", "cnbv", "gnbv", "global")
@@ -56,25 +54,6 @@ def planner_import_error(name: str) -> str | None:
     except Exception as e:  # noqa: BLE001 - any import-time failure is that planner's error row
         return f"planner {name!r} does not import: {type(e).__name__}: {e}"
     return None
-
-
-def machine_info() -> dict:
-    return {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
-            "processor": platform.processor() or platform.machine()}
-
-
-def code_info() -> dict:
-    """The git commit the bench ran on, and whether the tree had uncommitted changes."""
-    root = Path(__file__).resolve().parents[1]
-    try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                               capture_output=True, text=True, timeout=10)
-    except (OSError, subprocess.SubprocessError):
-        return {"git_commit": None, "dirty": None}
-    if head.returncode != 0:
-        return {"git_commit": None, "dirty": None}
-    return {"git_commit": head.stdout.strip(), "dirty": bool(dirty.stdout.strip()) if dirty.returncode == 0 else None}
 
 
 def max_rss_mb() -> float:
@@ -203,8 +182,8 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
               memory: bool = True, quick: bool = False, stream: TextIO | None = None,
               dry_run_cut: bool = False) -> dict:
     """Run the grid, write OUT/bench.json (after every run) and OUT/runs/seed<k>/<run folders>;
-    returns the bench document. The report is written by the caller (cellctl.bench_report)."""
-    from cellctl.scan_run import run_scan_in_twin
+    returns the bench document. The report is written by the caller (cellctl.bench.report)."""
+    from cellctl.scan.run import run_scan_in_twin
     from planners.config import load_planners_config
     from sim.scenes import load_scene
 
@@ -306,7 +285,7 @@ def summary_line(doc: dict) -> str:
 
 
 def scoring_bench(args, out: Path) -> int:
-    from cellctl import scoring_bench as sb
+    from cellctl.bench import scoring as sb
     from cellctl.config import load_cell_config
     from planners.config import load_planners_config
     from sim.scenes import SCENE_NAMES
@@ -322,7 +301,7 @@ def scoring_bench(args, out: Path) -> int:
 
 
 def oracle_bench(args, out: Path) -> int:
-    from cellctl import oracle_bench as ob
+    from cellctl.bench import oracle as ob
     from cellctl.config import load_cell_config
     from planners.config import load_planners_config
     from sim.scenes import SCENE_NAMES
@@ -336,7 +315,7 @@ def oracle_bench(args, out: Path) -> int:
 
 def cli_bench(args) -> int:
     """`cellctl bench` (parser in cellctl/cli.py). Exit 0: all runs ok; 1: some run failed; 130: interrupted."""
-    from cellctl import bench_report
+    from cellctl.bench import report as bench_report
     from cellctl.config import load_cell_config
     from sim.scenes import SCENE_NAMES
 
@@ -348,7 +327,7 @@ def cli_bench(args) -> int:
     if getattr(args, "service", None) is not None:
         return service_bench(args.service, Path(args.out) if args.out else default_out_dir())
     if getattr(args, "load", False):
-        from cellctl.load_bench import cli_load
+        from cellctl.bench.load import cli_load
 
         return cli_load(args, Path(args.out) if args.out else default_out_dir())
     if getattr(args, "scoring", False):
@@ -380,8 +359,8 @@ def cli_bench(args) -> int:
 
 def service_bench(n: int, out: Path) -> int:
     """The service figure: status round trip and submit-to-first-event latency of a real `cellctl
-    serve` on loopback (cellctl.service_bench), medians, written to OUT/service.json and service.md."""
-    from cellctl.service_bench import measure
+    serve` on loopback (cellctl.bench.latency), medians, written to OUT/service.json and service.md."""
+    from cellctl.bench.latency import measure
 
     if n < 1:
         raise ValueError("--service N must be >= 1")

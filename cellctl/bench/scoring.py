@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from cellctl.config import CellConfig
-from cellctl.scan import ScanJob
+from cellctl.scan.job import ScanJob
 from planners.base import ScanState
 from planners.config import PlannersConfig
 from planners.gnbv import GuidedNBV

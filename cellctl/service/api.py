@@ -3,7 +3,7 @@ its clients. Kept free of numpy/pybullet imports so a tablet app can use it with
 
 Every message carries ``schema_version``; unknown fields are refused (``extra="forbid"``) and types are
 strict (``"5"`` is not 5), so a client bug shows up as an error reply, not as a silently different job.
-docs/API.md is generated from this module by ``python -m cellctl.apidoc``."""
+docs/API.md is generated from this module by ``python -m cellctl.service.apidoc``."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ JOB_ID_PATTERN = r"^[0-9]{8}T[0-9]{6}Z-[0-9a-f]{6}$"
 # service.scene_dirs)
 SCENE_PATTERN = r"^([a-z0-9_]{1,64}|[^\x00-\x1f\x7f]{1,500}\.ya?ml)$"
 
-PLANNER_NAMES = ("gnbv", "cnbv", "enpv", "global")  # cellctl.scan.PLANNERS (a test keeps them equal)
+PLANNER_NAMES = ("gnbv", "cnbv", "enpv", "global")  # cellctl.scan.job.PLANNERS (a test keeps them equal)
 
 JobId = Annotated[str, Field(pattern=JOB_ID_PATTERN, description="e.g. 20250314T101500Z-3f9a1c")]
 CellId = Annotated[str, Field(pattern=CELL_ID_PATTERN)]

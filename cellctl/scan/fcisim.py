@@ -7,7 +7,7 @@ rendering), run irregularly and lose simulated time; in its own process it keeps
 either side leaves the other standing. libfranka's port is fixed (1337), so the server takes the first free
 loopback *address* from the one asked for (127.0.0.1, 127.0.0.2, ...).
 
-    python -m cellctl.fcisim [--host 127.0.0.1] [--q q1 ... q7]   # an external franky-sim for fcisim cells
+    python -m cellctl.scan.fcisim [--host 127.0.0.1] [--q q1 ... q7]   # an external franky-sim for fcisim cells
 
 prints ``FRANKY_SIM_READY <address>`` once it serves and runs until SIGINT/SIGTERM; the cell's own child
 (``--owned``) also ends when its stdin closes, so it never outlives the cell that started it.
@@ -31,7 +31,7 @@ from typing import Iterator, Sequence
 from drivers.interfaces import DeviceError
 
 READY = "FRANKY_SIM_READY"
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def loopback_from(first: str) -> Iterator[str]:
@@ -61,7 +61,7 @@ class FrankySim:
     def start(self) -> str:
         if self.proc is not None:
             return self.host  # type: ignore[return-value]
-        cmd = [sys.executable, "-m", "cellctl.fcisim", "--owned", "--host", self.first_host]
+        cmd = [sys.executable, "-m", "cellctl.scan.fcisim", "--owned", "--host", self.first_host]
         if self.initial_q is not None:
             cmd += ["--q", *map(repr, self.initial_q)]
         self.proc = subprocess.Popen(cmd, cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
@@ -93,7 +93,7 @@ class FrankySim:
 
     @staticmethod
     def _drain(proc: subprocess.Popen) -> None:
-        log = logging.getLogger("cellctl.fcisim")
+        log = logging.getLogger("cellctl.scan.fcisim")
         for line in proc.stdout:
             log.warning("franky-sim: %s", line.rstrip())
 
@@ -128,7 +128,7 @@ class FrankySim:
 
 # --- the child --------------------------------------------------------------------------------------
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m cellctl.fcisim",
+    ap = argparse.ArgumentParser(prog="python -m cellctl.scan.fcisim",
                                  description="franky-sim (MuJoCo FR3, libfranka protocol) on a loopback address")
     ap.add_argument("--host", default="127.0.0.1", help="first loopback address to try (default 127.0.0.1)")
     ap.add_argument("--q", type=float, nargs=7, default=None, metavar="RAD", help="initial joints")

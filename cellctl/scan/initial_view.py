@@ -14,9 +14,9 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from cellctl.artifacts import write_json, write_ply
 from cellctl.config import CellConfig
-from cellctl.scan import ScanResult, StepRecord
+from cellctl.scan.artifacts import write_json, write_ply
+from cellctl.scan.job import ScanResult, StepRecord
 from planners import clouds
 from planners.config import load_planners_config
 from planners.metrics import coverage

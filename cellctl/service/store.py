@@ -13,8 +13,8 @@ import threading
 from datetime import datetime, timezone
 from pathlib import Path
 
-from cellctl.api import (TERMINAL_STATES, Artifacts, JobBrief, JobRecord, Progress, ResultSummary, ScanDrawingRequest,
-                         Transition)
+from cellctl.service.api import (TERMINAL_STATES, Artifacts, JobBrief, JobRecord, Progress, ResultSummary,
+                                 ScanDrawingRequest, Transition)
 
 STORE_SCHEMA = 1
 

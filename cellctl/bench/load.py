@@ -3,9 +3,9 @@ subprocess, ``clients`` Zenoh sessions submitting ``jobs`` jobs into a queue bou
 ``service.queue_max`` (each retries after a short back-off on ``queue_full``), a poller querying status
 and jobs at ``hz`` throughout, a subscriber to every job event and a sampler of the service's RSS.
 Afterwards the store is read back to check that no job was lost, duplicated, ended twice or started out
-of order. Nothing is mocked; the jobs are real twin jobs (``service.job_profile``, cellctl.view_job).
+of order. Nothing is mocked; the jobs are real twin jobs (``service.job_profile``, cellctl.scan.initial_view).
 
-    from cellctl.load_bench import LoadSpec, run_load
+    from cellctl.bench.load import LoadSpec, run_load
     doc = run_load(LoadSpec(jobs=200, clients=10, hz=50))   # doc["checks"][name]["ok"], doc["figures"]
 
 Clients are threads of one process: their submit latencies include this process's GIL; the service,
@@ -26,7 +26,7 @@ from collections import Counter, defaultdict
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-from cellctl.api import TERMINAL_STATES
+from cellctl.service.api import TERMINAL_STATES
 
 # the cheapest twin the D435 model supports: 640x480 (4:3 crop, square pixels) and no dynamics
 FAST_TWIN = {"twin": {"camera": {"width": 640, "height": 480, "hfov_deg": 55.0}, "execution": "teleport"}}
@@ -99,7 +99,7 @@ class Submitter(threading.Thread):
         self.exc: str | None = None
 
     def run(self) -> None:
-        from cellctl.client import CellError, NoReply
+        from cellctl.service.client import CellError, NoReply
 
         req = {**self.spec.job, "requested_by": f"load-{self.idx}"}
         rng = random.Random(self.idx)
@@ -159,7 +159,7 @@ class Poller(threading.Thread):
         self._lock = threading.Lock()
 
     def _one(self, kind: str, fn) -> None:
-        from cellctl.client import CellError, NoReply
+        from cellctl.service.client import CellError, NoReply
 
         t0 = time.perf_counter()
         try:
@@ -274,7 +274,7 @@ def run_load(spec: LoadSpec = LoadSpec(), workdir: str | Path | None = None, *, 
     "raw" (the orders, transitions and events the checks were made on, so they can be re-checked).
     ``workdir`` keeps the service's config, store and job folders (default: a temp dir, removed);
     ``log_to``: copy the service's log there."""
-    from cellctl.service_bench import ServiceProcess
+    from cellctl.service.loopback import ServiceProcess
 
     if spec.jobs < 1 or spec.clients < 1 or spec.hz <= 0:
         raise ValueError("--jobs and --clients must be >= 1 and --hz > 0")
@@ -360,7 +360,7 @@ def run_load(spec: LoadSpec = LoadSpec(), workdir: str | Path | None = None, *, 
 def _read_records(c, ids: list[str]) -> tuple[dict[str, str | None], dict[str, list]]:
     """Every accepted job's state through the API after the run (None: not found or no reply), and
     what its result says it did: [views, coverage %, result.json among its artifacts]."""
-    from cellctl.client import CellError, NoReply
+    from cellctl.service.client import CellError, NoReply
 
     states: dict[str, str | None] = {}
     results: dict[str, list] = {}
@@ -587,8 +587,8 @@ def cli_load(args, out: Path) -> int:
     import sys
     from datetime import datetime
 
-    from cellctl.artifacts import write_json
-    from cellctl.bench import code_info, machine_info
+    from cellctl.bench.machine import code_info, machine_info
+    from cellctl.scan.artifacts import write_json
 
     spec = LoadSpec(jobs=args.jobs, clients=args.clients, hz=args.hz, queue_max=args.queue_max,
                     profile=args.job_profile)

@@ -19,7 +19,7 @@ from typing import Callable, TypeVar
 import numpy as np
 
 from cellctl.config import MotionConfig
-from cellctl.cut import torch_shape
+from cellctl.scan.cut import torch_shape
 from drivers.interfaces import Arm, DeviceError, JointTrajectory, RGBDCamera, RGBDFrame, TrajectoryError
 from planners import clouds, raycast
 from planners.base import ScanState, ViewPlan
@@ -115,7 +115,7 @@ class ScanResult:
     # the twin's position control (a few mrad) or the franky arm's controller (franky-sim lags 0.1 rad per rad/s)
     tracking_error_max_rad: float | None = None
     tracking_error_median_rad: float | None = None
-    cut: dict | None = None  # the cutting path's summary (cellctl.cut.CutSummary), when one was planned
+    cut: dict | None = None  # the cutting path's summary (cellctl.scan.cut.CutSummary), when one was planned
     error: str | None = None
     arm_stopped: bool | None = None  # after an error: whether the arm acknowledged stop() (None: no error)
     incidents: list[dict] = field(default_factory=list)  # faults met on the way, recovered or not

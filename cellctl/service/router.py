@@ -53,7 +53,7 @@ def run_router(cfg: "zenoh.Config", stop: threading.Event | None = None) -> None
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="cellctl router", description=__doc__)
-    ap.add_argument("--config", default=str(Path(__file__).resolve().parents[1] / "deploy/zenoh/router.json5"),
+    ap.add_argument("--config", default=str(Path(__file__).resolve().parents[2] / "deploy/zenoh/router.json5"),
                     help="router JSON5 config (default: deploy/zenoh/router.json5)")
     ap.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
                     help="listen endpoint, e.g. tcp/127.0.0.1:7447 (repeatable; default: the config's)")

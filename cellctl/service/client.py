@@ -16,10 +16,10 @@ from typing import Callable, TypeVar
 import zenoh
 from pydantic import BaseModel, ValidationError
 
-from cellctl.api import (TERMINAL_STATES, CancelReply, CancelRequest, CellStatus, ErrorReply, JobEvent, JobList,
-                         JobRecord, Keys, ListJobsRequest, ScanDrawingRequest, SubmitReply, dumps)
+from cellctl.service.api import (TERMINAL_STATES, CancelReply, CancelRequest, CellStatus, ErrorReply, JobEvent,
+                                 JobList, JobRecord, Keys, ListJobsRequest, ScanDrawingRequest, SubmitReply, dumps)
 
-log = logging.getLogger("cellctl.client")
+log = logging.getLogger("cellctl.service.client")
 M = TypeVar("M", bound=BaseModel)
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 

@@ -1,4 +1,4 @@
-"""A scan job from the command line or the service: open the cell's devices (cellctl.devices: the twin in
+"""A scan job from the command line or the service: open the cell's devices (cellctl.scan.devices: the twin in
 mode sim, franky-sim + the twin's renderer in fcisim, the Franka + D435 in real), run the job, write the
 run folder."""
 
@@ -12,13 +12,13 @@ from typing import Callable
 
 import numpy as np
 
-from cellctl.artifacts import new_run_dir, save_png, write_json, write_ply
 from cellctl.config import CellConfig
-from cellctl.cut import clearing_targets, dry_run_cut, plan_cut, twin_torch, write_trajectory
-from cellctl.devices import open_devices
-from cellctl.plots import coverage_figure, cut_figure
-from cellctl.recording import ScanRecorder
-from cellctl.scan import ScanJob, ScanResult, StepRecord
+from cellctl.scan.artifacts import new_run_dir, save_png, write_json, write_ply
+from cellctl.scan.cut import clearing_targets, dry_run_cut, plan_cut, twin_torch, write_trajectory
+from cellctl.scan.devices import open_devices
+from cellctl.scan.job import ScanJob, ScanResult, StepRecord
+from cellctl.scan.plots import coverage_figure, cut_figure
+from cellctl.scan.recording import ScanRecorder
 from drivers.interfaces import Arm
 from planners.config import load_planners_config
 from planners.metrics import cut_accuracy
@@ -91,7 +91,7 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
                      on_step: Callable[[StepRecord], None] | None = None,
                      on_phase: Callable[[str], None] | None = None,
                      arm_host: str | None = None) -> tuple[ScanResult, Path]:
-    """One job on the devices of ``cfg.mode`` (cellctl.devices.open_devices; ``arm_host``: fcisim, a
+    """One job on the devices of ``cfg.mode`` (cellctl.scan.devices.open_devices; ``arm_host``: fcisim, a
     franky-sim already running there). ``run_dir``: write into this folder (the service's per-job
     folder) instead of a new stamped one under ``out``. ``cancel``: set from another thread to end the
     scan early ("cancelled", partial result kept, no cut). ``on_step`` gets every StepRecord,

@@ -90,7 +90,7 @@ def open_devices(cfg: CellConfig, scene: Scene, twin_cfg: TwinConfig, *, run_dir
 
             host = arm_host
             if host is None and cfg.fcisim.simulator == "embedded":
-                from cellctl.fcisim import FrankySim
+                from cellctl.scan.fcisim import FrankySim
 
                 host = stack.enter_context(FrankySim(cfg.arm.host, twin_cfg.home_q, cfg.fcisim.start_timeout_s)).host
             arm_cfg = cfg.arm.model_copy(update={"host": host or cfg.arm.host})
