@@ -182,7 +182,7 @@ def test_one_capture_gives_grid_states_and_a_frontier(cell):
         job = ScanJob(twin.arm, twin.camera, "gnbv", pcfg, cfg.motion)
         job.move_to_initial(scene.initial_view_candidates)
         T = twin.arm.camera_pose()
-        job._process(twin.camera.capture(), T, twin.arm.joint_positions())
+        job.process(twin.camera.capture(), T, twin.arm.joint_positions())
     g = job.grid
     seen = job.drawing.xyz
     assert len(seen) > 100

@@ -37,7 +37,7 @@ def gnbv_states(cfg: CellConfig, pcfg: PlannersConfig, scene_name: str) -> list[
         viewpoints: list[np.ndarray] = []
         exact = pcfg.model_copy(update={"nbv": pcfg.nbv.model_copy(update={"coarse_ray_factor": 1})})
         for k in range(2):
-            cloud = job._process(twin.camera.capture_at(T), T, q)
+            cloud = job.process(twin.camera.capture_at(T), T, q)
             viewpoints.append(T[:3, 3])
             state = ScanState(k, job.grid, job.surface, job.drawing, cloud, T, scene.initial_view_candidates[0],
                               job.K, job.image_size, np.array(viewpoints))

@@ -218,7 +218,7 @@ class ScanJob:
                 continue
             k = len(res.records) + taken
             frame = self._capture(k)
-            self._process(frame, self.arm.camera_pose(), self.arm.joint_positions())
+            self.process(frame, self.arm.camera_pose(), self.arm.joint_positions())
             res.motion_planning_s += plan_s
             res.motion_s += motion_s
             res.motion_contacts += len(self.last_contacts)
@@ -298,7 +298,7 @@ class ScanJob:
                 self._incident(k, "recovered", f"usable frame at attempt {attempt + 1} of {CAPTURE_ATTEMPTS}")
             return frame
         if empty is not None and k > 0:
-            return empty  # frames arrive but hold no depth: an empty view (counted by _process)
+            return empty  # frames arrive but hold no depth: an empty view (counted by process)
         why = "; ".join(f"{len(v)} x {kind} (last: {v[-1]})" for kind, v in problems.items())
         if empty is not None:  # the initial view was chosen to see the drawing: no depth there is a fault
             raise DeviceError(f"camera returned no valid depth in {self.frames_without_depth} frames at the "
@@ -316,7 +316,7 @@ class ScanJob:
             self._incident(len(res.records), what, detail)
 
     # --- perception -----------------------------------------------------------------------------
-    def _process(self, frame, T_base_cam: np.ndarray, q: np.ndarray) -> Cloud:
+    def process(self, frame, T_base_cam: np.ndarray, q: np.ndarray) -> Cloud:
         """ProcessClouds of §IV-B plus the grid update. Returns on the arm itself (at joints q) are
         dropped first: the arm must not become an obstacle to itself."""
         g = self.pcfg.grid
@@ -418,7 +418,7 @@ class ScanJob:
             if self.first_color is None:
                 self.first_color = frame.color
             t1 = time.perf_counter()
-            cloud = self._process(frame, T, q)
+            cloud = self.process(frame, T, q)
             t_proc = time.perf_counter() - t1
             if len(cloud) == 0 and last_plan is not None:
                 self.planner.reject(last_plan)  # that view saw nothing: do not aim there again
