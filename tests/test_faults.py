@@ -7,9 +7,11 @@ sensor noise, teleport execution unless the arm's motion itself matters, the fas
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import threading
+import time
 import warnings
 from pathlib import Path
 
@@ -369,3 +371,55 @@ def test_service_killed_mid_job_restarts_then_a_missing_camera_fails_a_job_and_t
 def test_the_sim_config_documents_the_faults_section():
     doc = yaml.safe_load((CONFIG_DIR / "cell.sim.yaml").read_text())
     assert "faults" in doc["twin"] and not FaultsConfig.model_validate(doc["twin"]["faults"]).active
+
+
+def _job_worker(service_pid: int) -> int:
+    """The pid of the service's job worker (cellctl.service.worker): its child started by
+    multiprocessing's spawn, not the resource tracker."""
+    found = []
+    for task in Path(f"/proc/{service_pid}/task").iterdir():
+        for pid in (task / "children").read_text().split():
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ")
+            if b"multiprocessing" in cmd and b"resource_tracker" not in cmd:
+                found.append(int(pid))
+    assert len(found) == 1, found
+    return found[0]
+
+
+def test_a_job_whose_worker_crashes_fails_with_its_artifacts_and_the_cell_serves_on(tmp_path):
+    """A real SIGSEGV in the job's worker process mid-scan (as a crash in pybullet, Open3D or
+    numba would raise): the job ends `failed` saying how its worker died, its folder and recording
+    so far are kept and listed, the service answers throughout and runs the next job to done.
+    Then a SIGKILL of the service itself takes its running worker with it (no orphan moves on)."""
+    svc = service(tmp_path)
+    try:
+        with svc.client() as c:
+            stepped = threading.Event()
+            crashed = c.submit(job_request(12), on_event=lambda ev: ev.step == 0 and stepped.set()).job_id
+            assert stepped.wait(120)
+            worker = _job_worker(svc.proc.pid)
+            os.kill(worker, signal.SIGSEGV)
+            rec = c.wait(crashed, 120)
+            assert rec.state == "failed" and "SIGSEGV" in rec.error and "worker process" in rec.error, rec.error
+            assert [t.state for t in rec.transitions] == ["queued", "running", "failed"]
+            assert rec.transitions[-1].note == "the job's worker process died"
+            d = Path(rec.artifacts.dir)
+            assert "scan.rrd" in rec.artifacts.files and "/world/captures/0" in rrd_entities(d / "scan.rrd")
+            st = c.status()
+            assert st.accepting_jobs and st.running_job is None
+            assert_next_job_done(c, 2)
+
+            stepped.clear()
+            running = c.submit(job_request(12), on_event=lambda ev: ev.step == 0 and stepped.set()).job_id
+            assert stepped.wait(120)
+            worker = _job_worker(svc.proc.pid)
+        svc.proc.send_signal(signal.SIGKILL)
+        svc.proc.wait(10)
+        deadline = time.monotonic() + 30
+        while Path(f"/proc/{worker}").exists() and b"zombie" not in Path(f"/proc/{worker}/status").read_bytes():
+            assert time.monotonic() < deadline, "the worker outlived its service"
+            time.sleep(0.05)
+        # killed with its service, it wrote nothing more (an orphan would end its scan and write its result)
+        assert not (svc.data_dir / "jobs" / running / "result.json").exists()
+    finally:
+        svc.kill()

@@ -46,7 +46,7 @@ class LoadSpec:
     job_timeout_s: float = 120.0
     timeout_s: float = 1800.0  # the whole run, a safety net
     reply_timeout_s: float = 5.0
-    peak_rss_max_mb: float = 1536.0  # checks: the service's VmHWM ...
+    peak_rss_max_mb: float = 1536.0  # checks: the service's VmHWM (its job worker's added) ...
     rss_growth_max_mb: float = 64.0  # ... and its RSS trend from job rss_from to the last job
     rss_from: int = 50
     threads_growth_max: int = 4  # the lanes of Zenoh's runtime may still be starting; a thread per job is a leak
@@ -63,21 +63,50 @@ def stats(xs: list[float]) -> dict | None:
             "p99": round(q(0.99), 3), "max": round(xs[-1], 3)}
 
 
+def process_tree(pid: int) -> list[int]:
+    """``pid`` and its live descendants: the service, its job worker (cellctl.service.worker) and
+    multiprocessing's resource tracker."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        try:
+            for task in Path(f"/proc/{p}/task").iterdir():
+                todo += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:  # ended meanwhile
+            pass
+    return out
+
+
 def proc_status(pid: int) -> dict[str, int]:
-    """VmRSS, VmHWM (kB) and Threads of a live process, from /proc/<pid>/status."""
-    out = {}
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            key, _, val = line.partition(":")
-            if key in ("VmRSS", "VmHWM", "Threads"):
-                out[key] = int(val.split()[0])
+    """VmRSS, VmHWM (kB) and Threads of a live process and its descendants together, from
+    /proc/<pid>/status: the service's jobs run in its worker process, and their memory is the cell's."""
+    out = {"VmRSS": 0, "VmHWM": 0, "Threads": 0}
+    for i, p in enumerate(process_tree(pid)):
+        try:
+            with open(f"/proc/{p}/status") as f:
+                for line in f:
+                    key, _, val = line.partition(":")
+                    if key in out:
+                        out[key] += int(val.split()[0])
+        except OSError:
+            if i == 0:  # the service itself is gone
+                raise
     return out
 
 
 def proc_cpu_s(pid: int) -> float:
-    """User + system CPU seconds of a live process (/proc/<pid>/stat)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    """User + system CPU seconds of a live process and its descendants (/proc/<pid>/stat)."""
+    total = 0.0
+    for i, p in enumerate(process_tree(pid)):
+        try:
+            fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            if i == 0:
+                raise
+            continue
+        total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return total
 
 
 # --- the actors -----------------------------------------------------------------------------------

@@ -1,8 +1,9 @@
 """The cell-controller service: the job API over Zenoh (docs/API.md) in front of one arm.
 
-Jobs run one at a time, in submission order, in one worker thread (there is one arm); the Zenoh
-callbacks only validate, queue and read the store, so the cell answers status and job queries while a
-scan runs. Every job's life is in the SQLite store before anyone is told about it: a client that sees
+Jobs run one at a time, in submission order (there is one arm), in the cell's job worker process
+(cellctl.service.worker), which one queue thread feeds and waits for; the Zenoh callbacks only
+validate, queue and read the store, so the cell answers status and job queries while a scan runs,
+and a job that crashes ends as failed while the cell serves on. Every job's life is in the SQLite store before anyone is told about it: a client that sees
 an event can always read the matching record."""
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ from pathlib import Path
 import zenoh
 
 from cellctl.config import CellConfig, ServiceConfig
-from cellctl.scan.artifacts import _default as _json_default
 from cellctl.scan.devices import describe as describe_devices
 from cellctl.scan.devices import module_available
 from cellctl.service.api import (MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, ApiError, Artifacts, CancelReply, CancelRequest,
@@ -32,6 +32,7 @@ from cellctl.service.api import (MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, ApiError,
                                  ScanDrawingRequest, SubmitReply, dumps, parse_payload)
 from cellctl.service.client import zenoh_error
 from cellctl.service.store import JobStore, StoreError, now_iso
+from cellctl.service.worker import Worker, summary_from_file
 
 log = logging.getLogger("cellctl.service.server")
 JSON = zenoh.Encoding.APPLICATION_JSON
@@ -117,6 +118,7 @@ class CellService:
         self._events_lock = threading.Lock()
         self._seq: dict[str, int] = {}
         self._worker: threading.Thread | None = None
+        self._job_worker = Worker()  # the jobs' own process (cellctl.service.worker)
         self.session: zenoh.Session | None = None
         self._declared: list = []
         self._lock_file = None
@@ -231,6 +233,7 @@ class CellService:
             # while libfranka or librealsense threads run is aborted by the C++ runtime
             self._watcher.join(2.0 * self.cfg.arm.connect_timeout_s + 15.0 if self.cfg.arm else 15.0)
             self._watcher = None
+        self._job_worker.close()  # a job that did not stop within the grace holds the arm: killed
         if self._franky_sim is not None:
             self._franky_sim.close()
             self._franky_sim = None
@@ -484,6 +487,10 @@ class CellService:
 
     # --- the worker -------------------------------------------------------------------------------
     def _work(self) -> None:
+        try:
+            self._job_worker.start()  # from this thread: the worker lives as long as it
+        except Exception:  # noqa: BLE001 - each job tries again, and fails with the reason
+            log.exception("the job worker did not start")
         while True:
             with self._cv:
                 while not self._queue and not self._stopping.is_set():
@@ -506,9 +513,7 @@ class CellService:
                 self._recheck.set()  # the job may have found the arm or camera gone
 
     def _run(self, ctl: JobControl) -> None:
-        from cellctl.scan.initial_view import run_initial_view
-        from cellctl.scan.job import StepRecord
-        from cellctl.scan.run import run_scan_in_twin
+        from cellctl.service.worker import JobSpec
 
         job_id = ctl.job_id
         rec = self.store.get(job_id)
@@ -518,9 +523,9 @@ class CellService:
         log.info("job %s running: %s with %s", job_id, req.scene, req.planner)
         self._emit(job_id, "scanning", "running", max_steps=max_steps, message="building the twin")
 
-        def on_step(r: StepRecord) -> None:
-            self._emit(job_id, "scanning", self._state_of(ctl), step=r.step, coverage_percent=r.coverage_percent,
-                       drawing_points=r.drawing_points)
+        def on_step(r: dict) -> None:
+            self._emit(job_id, "scanning", self._state_of(ctl), step=r["step"],
+                       coverage_percent=r["coverage_percent"], drawing_points=r["drawing_points"])
 
         def on_phase(phase: str) -> None:
             if phase == "planning-cut":
@@ -529,25 +534,24 @@ class CellService:
         timer = threading.Timer(self.scfg.job_timeout_s, ctl.request, ("timeout",))
         timer.daemon = True
         timer.start()
-        result, error = None, None
+        summary, error, crashed = None, None, False
         try:
             scene = self._check_scene(req.scene)  # again: the file may have changed since the submit
-            if not ctl.cancel.is_set() and self.scfg.job_profile == "initial_view":
-                result = run_initial_view(self.cfg, self.cfg_path, scene, req.planner, seed=req.seed,
-                                          noise=req.noise, run_dir=job_dir, cancel=ctl.cancel, on_step=on_step)
-                error = result.error
-            elif not ctl.cancel.is_set():
-                result, _ = run_scan_in_twin(self.cfg, self.cfg_path, scene, req.planner, seed=req.seed,
-                                             noise=req.noise, max_steps=req.max_steps, progress=False, cut=True,
-                                             dry_run_cut=req.dry_run_cut, run_dir=job_dir, cancel=ctl.cancel,
-                                             on_step=on_step, on_phase=on_phase, arm_host=self.arm_host)
-                error = result.error
+            if not ctl.cancel.is_set():
+                spec = JobSpec(self.cfg, self.cfg_path, self.scfg.job_profile, scene, req.planner, job_dir,
+                               seed=req.seed, noise=req.noise, max_steps=req.max_steps, dry_run_cut=req.dry_run_cut,
+                               arm_host=self.arm_host)
+                out = self._job_worker.run(spec, ctl.cancel, on_step=on_step, on_phase=on_phase)
+                summary, error, crashed = out.summary, out.error, out.crashed
+                if crashed:
+                    log.error("job %s: %s", job_id, error)
         except Exception as e:  # noqa: BLE001 - a failed job, not a failed service
             error = f"{type(e).__name__}: {e}"
             log.warning("job %s failed: %s", job_id, error)
         finally:
             timer.cancel()
-        summary = _summary(result) if result is not None else _summary_from_file(job_dir / "result.json")
+        if summary is None:
+            summary = summary_from_file(job_dir / "result.json")
         if ctl.reason == "shutdown":
             state, note, error = "interrupted", "the service was stopped", error or "interrupted: the service was stopped"
         elif ctl.reason == "timeout":
@@ -555,6 +559,8 @@ class CellService:
             error = f"timeout: the job ran longer than service.job_timeout_s = {self.scfg.job_timeout_s:g} s"
         elif ctl.reason == "operator":
             state, note = "cancelled", "cancelled by the operator"
+        elif crashed:
+            state, note = "failed", "the job's worker process died"
         elif error:
             state, note = "failed", "the scan failed"
         else:
@@ -608,42 +614,6 @@ def _detail(loc: str, msg: str):
     from cellctl.service.api import ErrorDetail
 
     return ErrorDetail(loc=loc, msg=msg)
-
-
-_SUMMARY_FIELDS = tuple(ResultSummary.model_fields)
-
-
-def _summary(result) -> ResultSummary:
-    return _summary_from_dict(result.to_dict())
-
-
-def _summary_from_dict(d: dict) -> ResultSummary:
-    """ScanResult dict -> ResultSummary, through JSON so numpy scalars become plain numbers."""
-    s = {k: d.get(k) for k in _SUMMARY_FIELDS if k in d}
-    if s.get("error"):
-        s["error"] = str(s["error"])[:2000]
-    cut = d.get("cut")
-    if cut:
-        s["cut"] = {k: cut.get(k) for k in ("branches", "feasible_branches", "poses", "feasible_poses", "length_m",
-                                            "planning_s", "infeasible", "error", "dry_run", "cut_fraction",
-                                            "drawing_length_m", "clearing_views", "accuracy") if cut.get(k) is not None}
-        s["cut"]["gaps"] = [{k: g[k] for k in ("branch", "length_m", "reason", "detail", "start", "end")}
-                            for g in (cut.get("gaps") or [])[:200]]
-        s["cut"]["warnings"] = [str(w)[:500] for w in (cut.get("issues") or [])[:50]]
-        if cut.get("error"):
-            s["cut"]["error"] = str(cut["error"])[:2000]
-        dr = cut.get("dry_run")
-        if dr:
-            s["cut"]["dry_run"] = {**{k: v for k, v in dr.items() if k != "contacts"},
-                                   "contacts": len(dr.get("contacts") or [])}
-    return ResultSummary.model_validate_json(json.dumps(s, default=_json_default))
-
-
-def _summary_from_file(path: Path) -> ResultSummary | None:
-    try:
-        return _summary_from_dict(json.loads(path.read_text()))
-    except Exception:  # noqa: BLE001 - no (readable) partial result: the record says why the job failed
-        return None
 
 
 # --- `cellctl serve` ------------------------------------------------------------------------------
