@@ -263,14 +263,16 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--dry-run-cut", action="store_true",
                    help="run every scan's cut in the twin (torch off): contacts and tip error in the cut table")
     b.add_argument("--service", type=int, nargs="?", const=100, default=None, metavar="N",
-                   help="instead of scans: the job API's latency on loopback (N status queries, default 100)")
+                   help="instead of scans: the job API's latency on loopback (N status queries, default 100), then "
+                        "the status round trip of --clients sessions at --hz during a whole scan job")
     b.add_argument("--load", action="store_true",
                    help="instead of scans: the load test of the job API on loopback (load.json, load.md; "
                         "docs/RELIABILITY.md)")
     b.add_argument("--jobs", type=int, default=200, help="with --load: jobs submitted in all (default: 200)")
-    b.add_argument("--clients", type=int, default=10, help="with --load: client sessions (default: 10)")
-    b.add_argument("--hz", type=float, default=50.0, help="with --load: status and jobs queries per second, each "
-                                                         "(default: 50)")
+    b.add_argument("--clients", type=int, default=10, help="with --load or --service: client sessions (default: 10)")
+    b.add_argument("--hz", type=float, default=None,
+                   help="with --load: status and jobs queries per second, each (default: 50); with --service: "
+                        "status queries per second of each client during a scan (default: 20)")
     b.add_argument("--queue-max", type=int, default=8, help="with --load: the service's queue_max (default: 8)")
     b.add_argument("--job-profile", choices=("initial_view", "scan"), default="initial_view",
                    help="with --load: service.job_profile; initial_view (0.3 s jobs, default) or scan (full jobs, "

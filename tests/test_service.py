@@ -255,14 +255,20 @@ def test_a_job_over_its_timeout_fails_in_process(tmp_path):
 def test_service_bench_measures_latency(tmp_path):
     """`cellctl bench --service N`: a real service on loopback, figures in service.json/.md. The figures
     are measured, not judged here: how fast is the bench's business, and depends on the machine's load."""
-    proc = subprocess.run([sys.executable, "-m", "cellctl.cli", "bench", "--service", "5", "--out", str(tmp_path)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=570)  # a liveness bound (idle: ~10 s)
+    proc = subprocess.run([sys.executable, "-m", "cellctl.cli", "bench", "--service", "5", "--clients", "3", "--hz",
+                           "10", "--scenes", "smooth_cylinder", "--out", str(tmp_path)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=570)  # a liveness bound (idle: ~30 s)
     assert proc.returncode == 0, proc.stderr[-3000:]
     m = json.loads((tmp_path / "service.json").read_text())["service"]
     assert m["status_rtt_idle_ms"]["n"] == 5 and 0 < m["status_rtt_idle_ms"]["median"]
     assert m["submit_to_first_event_ms"]["n"] == 5 and m["submit_to_first_event_idle_ms"] > 0
     assert m["exit_status"] == 0 and m["sigterm_to_exit_s"] > 0
     assert "| status round trip, cell idle |" in (tmp_path / "service.md").read_text()
+    load = json.loads((tmp_path / "service.json").read_text())["status_under_scan"]
+    assert load["job_state"] == "done" and load["clients"] == 3 and load["scene"] == "smooth_cylinder"
+    assert load["status_rtt_idle_ms"]["n"] >= 3 and load["status_rtt_scan_ms"]["n"] >= 3  # every client, each phase
+    assert load["failed_or_unanswered"] == {"idle": 0, "scan": 0}
+    assert "| status round trip, 3 clients at 10 Hz, during a scan |" in (tmp_path / "service.md").read_text()
 
 
 def test_one_service_per_data_dir(cell):

@@ -26,6 +26,7 @@ from collections import Counter, defaultdict
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+from cellctl.bench.stats import summary
 from cellctl.service.api import TERMINAL_STATES
 
 # the cheapest twin the D435 model supports: 640x480 (4:3 crop, square pixels) and no dynamics
@@ -53,16 +54,6 @@ class LoadSpec:
 
 
 # --- small helpers --------------------------------------------------------------------------------
-def stats(xs: list[float]) -> dict | None:
-    """n, median, p90, p99, max (nearest rank), rounded to µs when xs are milliseconds."""
-    if not xs:
-        return None
-    xs = sorted(xs)
-    q = lambda p: xs[min(len(xs) - 1, max(0, int(round(p * len(xs))) - 1))]  # noqa: E731
-    return {"n": len(xs), "median": round(statistics.median(xs), 3), "p90": round(q(0.90), 3),
-            "p99": round(q(0.99), 3), "max": round(xs[-1], 3)}
-
-
 def process_tree(pid: int) -> list[int]:
     """``pid`` and its live descendants: the service, its job worker (cellctl.service.worker) and
     multiprocessing's resource tracker."""
@@ -288,8 +279,7 @@ class RssSampler(threading.Thread):
         pts = [(n, kb / 1024) for _, n, kb, _ in self.samples if n >= from_job]
         if len(pts) < 2 or pts[-1][0] == pts[0][0]:
             return None
-        mx, my = statistics.fmean(p[0] for p in pts), statistics.fmean(p[1] for p in pts)
-        slope = sum((x - mx) * (y - my) for x, y in pts) / sum((x - mx) ** 2 for x, _ in pts)
+        slope, _ = statistics.linear_regression([p[0] for p in pts], [p[1] for p in pts])
         return slope * (pts[-1][0] - pts[0][0])
 
     def threads_after(self, n_jobs: int) -> int | None:
@@ -437,7 +427,7 @@ def _figures(spec: LoadSpec, raw: dict, subs: list[Submitter], poller: Poller, s
     trans = raw["transitions"].values()
     waits = [_seconds_between(t[0][1], t[1][1]) for t in trans if len(t) > 1 and t[1][0] == "running"]
     runs = [_seconds_between(t[1][1], t[-1][1]) for t in trans if len(t) > 2 and t[1][0] == "running"]
-    queries = {k: {**(stats(v) or {"n": 0}), "failed": sum(n for key, n in poller.failed.items()
+    queries = {k: {**(summary(v) or {"n": 0}), "failed": sum(n for key, n in poller.failed.items()
                                                            if key.startswith(k + ":")),
                    "unanswered": poller.unanswered[k]} for k, v in poller.ms.items()}
     n_acc = sum(len(v) for v in raw["accepted"].values())
@@ -450,16 +440,16 @@ def _figures(spec: LoadSpec, raw: dict, subs: list[Submitter], poller: Poller, s
         "poller_hz_target": spec.hz,
         "poller_ticks": poller.ticks,
         "poller_hz_achieved": round(poller.ticks / poller.t_run, 2) if poller.t_run else None,
-        "poller_tick_late_ms": stats(poller.late_ms),
+        "poller_tick_late_ms": summary(poller.late_ms),
         "queue_max": spec.queue_max,
         "queue_length_max_seen": poller.max_queue_length,
         "queue_full_replies": raw["submit_refusals"]["queue_full"],
         "queue_full_per_client": [s.queue_full for s in subs],
-        "submit_ms": stats([x for s in subs for x in s.submit_ms]),
+        "submit_ms": summary([x for s in subs for x in s.submit_ms]),
         "queries_ms": queries,
         "queries_total": sum(q["n"] + q["failed"] + q["unanswered"] for q in queries.values()),
-        "job_wait_s": stats(waits),
-        "job_run_s": stats(runs),
+        "job_wait_s": summary(waits),
+        "job_run_s": summary(runs),
         "wall_s": round(wall, 1),
         "service_startup_s": round(startup_s or 0, 2),
         "submit_phase_s": round(t_submitted - t0, 1),
@@ -619,7 +609,8 @@ def cli_load(args, out: Path) -> int:
     from cellctl.bench.machine import code_info, machine_info
     from cellctl.scan.artifacts import write_json
 
-    spec = LoadSpec(jobs=args.jobs, clients=args.clients, hz=args.hz, queue_max=args.queue_max,
+    spec = LoadSpec(jobs=args.jobs, clients=args.clients, hz=50.0 if args.hz is None else args.hz,
+                    queue_max=args.queue_max,
                     profile=args.job_profile)
     if not 1 <= spec.queue_max <= 1000:
         raise ValueError("--queue-max must be in 1..1000 (service.queue_max)")

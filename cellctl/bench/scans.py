@@ -325,7 +325,11 @@ def cli_bench(args) -> int:
             print(path)
         return 0
     if getattr(args, "service", None) is not None:
-        return service_bench(args.service, Path(args.out) if args.out else default_out_dir())
+        scene = args.scenes if args.scenes and args.scenes != "all" else "basket"
+        if "," in scene:
+            raise ValueError("--service scans one scene: give --scenes NAME")
+        return service_bench(args.service, Path(args.out) if args.out else default_out_dir(), clients=args.clients,
+                             hz=20.0 if args.hz is None else args.hz, scene=scene)
     if getattr(args, "load", False):
         from cellctl.bench.load import cli_load
 
@@ -357,29 +361,39 @@ def cli_bench(args) -> int:
     return 0 if not any(r["error"] for r in doc["runs"]) else 1
 
 
-def service_bench(n: int, out: Path) -> int:
-    """The service figure: status round trip and submit-to-first-event latency of a real `cellctl
-    serve` on loopback (cellctl.bench.latency), medians, written to OUT/service.json and service.md."""
-    from cellctl.bench.latency import measure
+def service_bench(n: int, out: Path, *, clients: int = 10, hz: float = 20.0, scene: str = "basket") -> int:
+    """The service figures, written to OUT/service.json and service.md: status round trip and
+    submit-to-first-event latency of a real `cellctl serve` on loopback (cellctl.bench.latency), then
+    the status round trip of ``clients`` sessions at ``hz`` each, idle and during a whole scan job
+    of ``scene`` with G-NBV."""
+    from cellctl.bench.latency import measure, status_under_scan
 
-    if n < 1:
-        raise ValueError("--service N must be >= 1")
+    if n < 1 or clients < 1 or not 0 < hz <= 1000:
+        raise ValueError("--service N and --clients must be >= 1, --hz in (0, 1000]")
     out.mkdir(parents=True, exist_ok=True)
     r = measure(n)
+    load = status_under_scan(clients, hz, scene=scene)
     doc = {"schema_version": 1, "created": datetime.now().astimezone().isoformat(timespec="seconds"),
-           "machine": machine_info(), "code": code_info(), "service": r}
+           "machine": machine_info(), "code": code_info(), "service": r, "status_under_scan": load}
     write_json(out / "service.json", doc)
 
     def row(name, st):
-        return f"| {name} | {st['median']:.2f} | {st['p90']:.2f} | {st['max']:.2f} | {st['n']} |" if st else f"| {name} | – | – | – | 0 |"
+        return (f"| {name} | {st['median']:.2f} | {st['p90']:.2f} | {st['p99']:.2f} | {st['max']:.2f} | {st['n']} |"
+                if st else f"| {name} | – | – | – | – | 0 |")
+    busy = f"{clients} clients at {hz:g} Hz"
     md = ["# Service latency on loopback", "", f"- created {doc['created']}; {doc['machine']['cpus']} CPUs; "
           f"service start-up {r.get('service_startup_s')} s; SIGTERM to exit {r.get('sigterm_to_exit_s')} s", "",
-          "| figure (ms) | median | p90 | max | n |", "|---|--:|--:|--:|--:|",
+          "| figure (ms) | median | p90 | p99 | max | n |", "|---|--:|--:|--:|--:|--:|",
           row("status round trip, cell idle", r.get("status_rtt_idle_ms")),
           row("status round trip, during a scan", r.get("status_rtt_busy_ms")),
-          row("submit to first event, during a scan", r.get("submit_to_first_event_ms")), "",
+          row("submit to first event, during a scan", r.get("submit_to_first_event_ms")),
+          row(f"status round trip, {busy}, cell idle", load.get("status_rtt_idle_ms")),
+          row(f"status round trip, {busy}, during a scan", load.get("status_rtt_scan_ms")), "",
           f"Submit to first event with the cell idle: {r.get('submit_to_first_event_idle_ms')} ms; submit to the "
-          f"first exploration step (twin built, first view): {r.get('job_start_ms')} ms.", ""]
+          f"first exploration step (twin built, first view): {r.get('job_start_ms')} ms.", "",
+          f"The scan under {busy}: {load['scene']} with {load['planner']}, {load.get('views')} views, "
+          f"{load.get('job_s')} s from submit to its end ({load.get('job_state')}); queries failed or unanswered: "
+          f"{load.get('failed_or_unanswered')}.", ""]
     (out / "service.md").write_text("\n".join(md))
     print("\n".join(md))
     return 0
