@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from planners.config import ConfigError
+from planners.registry import DEFAULT_PLANNER, PLANNERS
 
 
 def _scan(args: argparse.Namespace) -> int:
@@ -238,7 +239,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("scan", help="scan a drawing on the config's devices (mode sim: the pybullet twin; fcisim, "
                                     "real: see docs/HARDWARE.md) and write a run folder")
     s.add_argument("--scene", required=True, help="built-in scene name or path to a scene .yaml")
-    s.add_argument("--planner", default="gnbv", help="next-view planner (default: gnbv)")
+    s.add_argument("--planner", default=DEFAULT_PLANNER, choices=tuple(PLANNERS),
+                   help=f"next-view planner (default: {DEFAULT_PLANNER})")
     s.add_argument("--config", default=None, help="cell config YAML (default: configs/cell.sim.yaml)")
     s.add_argument("--out", default=None, help="runs folder (default: the config's runs_dir)")
     s.add_argument("--seed", type=int, default=None, help="sensor noise seed (default: the config's)")
@@ -308,7 +310,8 @@ def build_parser() -> argparse.ArgumentParser:
     sd = su_kind.add_parser("scan-drawing", help="scan the painted line and plan its cutting path")
     _client_args(sd)
     sd.add_argument("--scene", required=True, help="twin: built-in scene name or scene .yaml path on the cell")
-    sd.add_argument("--planner", default="gnbv", help="gnbv (default), cnbv, enpv or global")
+    sd.add_argument("--planner", default=DEFAULT_PLANNER, choices=tuple(PLANNERS),
+                    help=f"next-view planner (default: {DEFAULT_PLANNER})")
     sd.add_argument("--max-steps", type=int, default=None)
     sd.add_argument("--seed", type=int, default=None)
     sd.add_argument("--no-noise", action="store_true")

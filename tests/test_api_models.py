@@ -93,11 +93,19 @@ def test_error_codes_are_a_closed_set():
         ErrorReply(code="oops", message="x")
 
 
-def test_planner_names_match_the_scan():
-    from cellctl.scan.job import PLANNERS
+def test_every_registered_planner_builds_and_is_a_request_the_api_takes():
+    """planners.registry is the one list: each name imports to a planner class, the API's request
+    takes it, and a name not in it is refused by both."""
+    from planners.registry import PLANNERS, make_planner, planner_class
 
-    assert set(api.PLANNER_NAMES) == set(PLANNERS)
-    assert set(ScanDrawingRequest.model_fields["planner"].annotation.__args__) == set(PLANNERS)
+    for name in PLANNERS:
+        assert callable(planner_class(name).next_view)
+        assert ScanDrawingRequest(scene="t_piece", planner=name).planner == name
+    assert ScanDrawingRequest(scene="t_piece").planner == "gnbv"
+    with pytest.raises(ValidationError):
+        ScanDrawingRequest(scene="t_piece", planner="nope")
+    with pytest.raises(ValueError, match="unknown planner 'nope'"):
+        make_planner("nope", None)
 
 
 def test_examples_round_trip_and_events_reject_bad_phases():

@@ -14,7 +14,8 @@ import pytest
 
 from cellctl.bench import report, scans
 from cellctl.bench.report import PAPER_TABLE_II
-from cellctl.scan.job import PLANNERS, ScanResult
+from cellctl.scan.job import ScanResult
+from planners.registry import PLANNERS
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -35,7 +35,7 @@ def _state():
 
 @pytest.mark.parametrize("name", ["gnbv", "cnbv"])
 def test_feature_guided_planners_look_where_the_stripe_leaves_the_view(name):
-    from cellctl.scan.job import make_planner
+    from planners.registry import make_planner
 
     cfg, state = _state()
     plan = make_planner(name, cfg).next_view(state)
@@ -51,7 +51,7 @@ def test_feature_guided_planners_look_where_the_stripe_leaves_the_view(name):
 
 
 def test_global_planner_ignores_the_drawing_and_stops_when_gain_is_exhausted():
-    from cellctl.scan.job import make_planner
+    from planners.registry import make_planner
 
     cfg, state = _state()
     planner = make_planner("global", cfg)
@@ -66,7 +66,7 @@ def test_global_planner_ignores_the_drawing_and_stops_when_gain_is_exhausted():
 
 
 def test_no_drawing_means_no_frontier_and_a_clean_stop():
-    from cellctl.scan.job import make_planner
+    from planners.registry import make_planner
 
     cfg, state = _state()
     state.grid.set_drawing(np.zeros((0, 3)))
@@ -236,7 +236,7 @@ def test_cnbv_keeps_targets_as_gnbv_does():
     """C-NBV books its views per frontier cluster like G-NBV: a view that found no drawing marks its
     target, a second gives it up; a view direction already taken onto a cluster is not offered
     again; candidates the runner could not reach are dropped, not the cluster they looked at."""
-    from cellctl.scan.job import make_planner
+    from planners.registry import make_planner
 
     cfg, state = _state()
     planner = make_planner("cnbv", cfg)
@@ -344,7 +344,7 @@ def test_a_replan_within_a_step_is_not_a_visit():
 def test_planners_offer_only_views_the_reach_map_allows():
     """With a reachability test in the state, G-NBV and C-NBV rank only the candidates it allows (the
     runner's IK is not spent on views the arm cannot take); without one they offer more."""
-    from cellctl.scan.job import make_planner
+    from planners.registry import make_planner
 
     def west_only(positions, axes):  # a stand-in arm that reaches only x < 0.45
         return positions[:, 0] < 0.45
@@ -362,7 +362,7 @@ def test_planners_offer_only_views_the_reach_map_allows():
 def test_cnbv_does_not_return_to_a_place_it_looked_from():
     """C-NBV turns its candidates by a few tens of degrees at most: from a position the camera
     already took, such a view frames much of what that view saw, so no candidate is offered there."""
-    from cellctl.scan.job import make_planner
+    from planners.registry import make_planner
 
     cfg, state = _state()
     first = make_planner("cnbv", cfg).next_view(state)
@@ -415,7 +415,7 @@ def test_unknown_air_does_not_hide_a_view_of_unseen_ground():
 def test_cnbv_stops_on_expected_cells_not_on_a_share_of_its_first_gain():
     """C-NBV's first gain is the best over the whole frontier: a later view worth a fraction of it can
     still find the rest of the drawing. It stops only when no view is worth min_gain."""
-    from cellctl.scan.job import make_planner
+    from planners.registry import make_planner
 
     cfg, state = _state()
     planner = make_planner("cnbv", cfg)
@@ -486,7 +486,7 @@ def test_gnbv_takes_the_view_that_shows_both_ends_and_books_the_one_it_took():
     the candidate of most gain frames both ends; scored on its own target's only, as the paper's
     G-NBV, it frames the nearest end alone. (Q's travel cost may still prefer a near view: eq. 4.)
     The visit is booked on the cluster of the candidate the runner took."""
-    from cellctl.scan.job import make_planner
+    from planners.registry import make_planner
 
     paper_cfg, state = _two_ended_state()
     cfg = paper_cfg.model_copy(update={"nbv": paper_cfg.nbv.model_copy(

@@ -8,7 +8,6 @@ goes on. bench.json is rewritten after every run, so an interrupted bench keeps 
 
 from __future__ import annotations
 
-import importlib
 import itertools
 import math
 import resource
@@ -22,10 +21,11 @@ from typing import TextIO
 from cellctl.bench.machine import code_info, machine_info
 from cellctl.config import CellConfig
 from cellctl.scan.artifacts import write_json
-from cellctl.scan.job import PLANNERS, ScanResult
+from cellctl.scan.job import ScanResult
+from planners.registry import PLANNERS, planner_class
 
 SCHEMA_VERSION = 1
-DEFAULT_PLANNERS: tuple[str, ...] = ("enpv", "cnbv", "gnbv", "global")
+DEFAULT_PLANNERS: tuple[str, ...] = tuple(PLANNERS)
 DEFAULT_SEEDS = 3
 QUICK = {"scenes": ("smooth_cylinder", "round_tank"), "planners": ("gnbv", "enpv"), "seeds": 1}
 _MIB = 1024 * 1024
@@ -48,9 +48,8 @@ def parse_list(value: str | None, allowed: tuple[str, ...], what: str, default: 
 
 def planner_import_error(name: str) -> str | None:
     """Why the planner cannot be built, or None. A half-written module fails here, not mid-bench."""
-    module, cls = PLANNERS[name].split(":")
     try:
-        getattr(importlib.import_module(module), cls)
+        planner_class(name)
     except Exception as e:  # noqa: BLE001 - any import-time failure is that planner's error row
         return f"planner {name!r} does not import: {type(e).__name__}: {e}"
     return None

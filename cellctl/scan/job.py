@@ -9,7 +9,6 @@ be recovered ends the scan with ``error`` set, the arm stopped and everything se
 
 from __future__ import annotations
 
-import importlib
 import threading
 import time
 import traceback
@@ -34,18 +33,10 @@ from planners.motion.ik import Unreachable
 from planners.motion.kinematics import Kinematics
 from planners.motion.reach_map import reach_map_for
 from planners.motion.view_motion import ViewMotionPlanner
+from planners.registry import make_planner
 from planners.views import look_at_rotations, poses_from
 
 Out = TypeVar("Out")
-
-# name -> "module:class"; imported on demand so one planner's dependencies never load another's
-PLANNERS = {
-    "enpv": "planners.enpv:ExtrapolatedNVP",
-    "cnbv": "planners.cnbv:ConstrainedNBV",
-    "gnbv": "planners.gnbv:GuidedNBV",
-    "global": "planners.global_nbv:GlobalNBV",
-}
-
 
 REACH_TOL_M = 0.02  # a camera further than this from its planned pose did not reach the view
 REACH_TOL_DEG = 5.0
@@ -59,15 +50,6 @@ class ScanError(RuntimeError):
     def __init__(self, message: str, terminated_by: str = "error"):
         super().__init__(message)
         self.terminated_by = terminated_by
-
-
-def make_planner(name: str, cfg: PlannersConfig):
-    """A fresh planner for one scan (planners keep per-scan memory)."""
-    try:
-        module, cls = PLANNERS[name].split(":")
-    except KeyError:
-        raise ValueError(f"unknown planner {name!r}; choose one of {', '.join(PLANNERS)}") from None
-    return getattr(importlib.import_module(module), cls)(cfg)
 
 
 @dataclass

@@ -12,6 +12,8 @@ from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from planners.registry import DEFAULT_PLANNER, PLANNERS  # names only: no planner is imported
+
 SCHEMA_VERSION = 1
 MAX_PAYLOAD_BYTES = 64 * 1024  # a request is a few hundred bytes; anything near this is a bug or an attack
 # the cell's Zenoh transport drops a (defragmented) message over this before the service sees it: no query,
@@ -26,7 +28,7 @@ JOB_ID_PATTERN = r"^[0-9]{8}T[0-9]{6}Z-[0-9a-f]{6}$"
 # service.scene_dirs)
 SCENE_PATTERN = r"^([a-z0-9_]{1,64}|[^\x00-\x1f\x7f]{1,500}\.ya?ml)$"
 
-PLANNER_NAMES = ("gnbv", "cnbv", "enpv", "global")  # cellctl.scan.job.PLANNERS (a test keeps them equal)
+PLANNER_NAMES = tuple(PLANNERS)
 
 JobId = Annotated[str, Field(pattern=JOB_ID_PATTERN, description="e.g. 20250314T101500Z-3f9a1c")]
 CellId = Annotated[str, Field(pattern=CELL_ID_PATTERN)]
@@ -96,7 +98,7 @@ class ScanDrawingRequest(ApiModel):
                                    "working directory) that lies, symlinks resolved, inside one of the cell's "
                                    "scene directories (`service.scene_dirs`, by default `scenes/` beside the "
                                    "cell config); any other path gets `invalid_request`, whether it exists or not")
-    planner: Literal["gnbv", "cnbv", "enpv", "global"] = Field("gnbv", description="next-view planner")
+    planner: Literal[PLANNER_NAMES] = Field(DEFAULT_PLANNER, description="next-view planner")
     max_steps: int | None = Field(None, ge=1, le=200, description="views at most, initial one included "
                                   "(default: planners.yaml)")
     seed: int | None = Field(None, ge=0, le=2**31 - 1, description="twin sensor noise seed (default: the config's)")
