@@ -14,12 +14,16 @@ Never imports planners/ or cellctl/.
 from __future__ import annotations
 
 import dataclasses
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from drivers.interfaces import ArmModel, DeviceError, Intrinsics, JointTrajectory, RGBDFrame, TrajectoryError
+from drivers.interfaces import (ArmWrapper, DeviceError, Intrinsics, JointTrajectory, RGBDCamera, RGBDFrame,
+                                TrajectoryError)
+
+if TYPE_CHECKING:
+    from sim.twin import TwinArm, TwinCamera
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
 
@@ -105,11 +109,12 @@ class FaultsConfig(BaseModel):
         return self.camera.active or self.arm.active or self.arm.ik_failure
 
 
-class FaultyCamera:
-    """A camera (``drivers.interfaces.RGBDCamera``) whose selected captures are dropped, emptied,
-    stale or drowned in noise. Everything else (twin-only helpers) is the wrapped camera's."""
+class FaultyCamera(RGBDCamera):
+    """The twin's camera (``drivers.interfaces.RGBDCamera``) whose selected captures are dropped, emptied,
+    stale or drowned in noise. The twin-only helpers below are passed on to the wrapped camera as they
+    are (no fault applies to them)."""
 
-    def __init__(self, camera, faults: CameraFaults) -> None:
+    def __init__(self, camera: "TwinCamera", faults: CameraFaults) -> None:
         self._camera = camera
         self._faults = faults
         self.intrinsics: Intrinsics = camera.intrinsics
@@ -118,8 +123,26 @@ class FaultyCamera:
         self.captures = 0  # capture() calls so far
         self.injected: list[tuple[int, str]] = []  # (capture index, fault) as they happened
 
-    def __getattr__(self, name: str):
-        return getattr(self._camera, name)
+    # --- twin only, passed on: hand-eye, benches and tests render through a twin that may have faults
+    @property
+    def K(self) -> np.ndarray:
+        return self._camera.K
+
+    @property
+    def last_truth(self) -> np.ndarray | None:
+        return self._camera.last_truth
+
+    def capture_at(self, T_base_cam: np.ndarray) -> RGBDFrame:
+        return self._camera.capture_at(T_base_cam)
+
+    def render(self, T_base_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self._camera.render(T_base_cam)
+
+    def render_truth(self, T_base_cam: np.ndarray | None = None) -> np.ndarray:
+        return self._camera.render_truth(T_base_cam)
+
+    def sensor_depth(self, raw: np.ndarray) -> np.ndarray:
+        return self._camera.sensor_depth(raw)
 
     def capture(self) -> RGBDFrame:
         f, i = self._faults, self.captures
@@ -151,29 +174,35 @@ class FaultyCamera:
         return frame
 
 
-class FaultyArm:
-    """An arm (``drivers.interfaces.Arm``) whose selected motions end part way, by a reflex or by a
-    stop request. The abort goes through the wrapped twin arm's own ``stop()`` (called from its
-    per-sample hook ``on_sample``), so the arm really halts and holds where it is."""
+class FaultyArm(ArmWrapper):
+    """The twin's arm (``drivers.interfaces.Arm``) whose selected motions end part way, by a reflex or by
+    a stop request. The abort goes through the wrapped twin arm's own ``stop()`` (called from its
+    per-sample hook ``on_sample``), so the arm really halts and holds where it is. The wrapped arm's
+    optional abilities are passed on (``ArmWrapper``: the twin's ``ContactLog`` and ``MotionLog``), and so
+    are the twin-only members below."""
 
-    def __init__(self, arm, faults: ArmFaults) -> None:
-        self._arm = arm
+    _arm: "TwinArm"
+
+    def __init__(self, arm: "TwinArm", faults: ArmFaults) -> None:
+        super().__init__(arm)
         self._faults = faults
-        self.model: ArmModel = arm.model
         self.motions = 0  # execute() calls so far
         self.injected: list[tuple[int, str, float]] = []  # (motion index, fault, time into the motion)
 
-    def __getattr__(self, name: str):
-        return getattr(self._arm, name)
+    # --- twin only, passed on: the twin, the scan's devices and tests reach them through a faulty arm
+    def reset(self, q) -> None:
+        self._arm.reset(q)
 
-    def joint_positions(self) -> np.ndarray:
-        return self._arm.joint_positions()
+    def mirror(self, samples) -> list[dict]:
+        return self._arm.mirror(samples)
 
-    def camera_pose(self) -> np.ndarray:
-        return self._arm.camera_pose()
+    @property
+    def flange_index(self) -> int:
+        return self._arm.flange_index
 
-    def stop(self) -> None:
-        self._arm.stop()
+    @property
+    def _joints(self) -> list[int]:  # the pybullet joint indices: tests/test_faults.py reads the joint speeds
+        return self._arm._joints
 
     def execute(self, trajectory: JointTrajectory) -> float:
         f, i = self._faults, self.motions

@@ -27,8 +27,8 @@ import pybullet_data
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from drivers.interfaces import (ArmModel, DeviceError, Intrinsics, JointTrajectory, RGBDFrame,
-                                TrajectoryError)
+from drivers.interfaces import (Arm, ArmModel, ContactLog, DeviceError, Intrinsics, JointTrajectory, MotionLog,
+                                RGBDCamera, RGBDFrame, TrajectoryError)
 from sim.config import TwinConfig
 from sim.d435 import apply_depth_noise, grazing_mask, intrinsics_for
 from sim.faults import FaultyArm, FaultyCamera, place_out_of_reach
@@ -130,8 +130,9 @@ class _Sim:
             raise DeviceError("the twin is closed")
 
 
-class TwinArm:
-    """The simulated Panda (implements ``drivers.interfaces.Arm``)."""
+class TwinArm(Arm, ContactLog, MotionLog):
+    """The simulated Panda (implements ``drivers.interfaces.Arm``), with the twin's own contact check of
+    every motion (``ContactLog``) and the joints commanded and reached at every step (``MotionLog``)."""
 
     def __init__(self, sim: _Sim, config: TwinConfig) -> None:
         self._sim = sim
@@ -396,7 +397,7 @@ class TwinArm:
         return err
 
 
-class TwinCamera:
+class TwinCamera(RGBDCamera):
     """The simulated D435 on the hand (implements ``drivers.interfaces.RGBDCamera``).
 
     Each frame: TinyRenderer image at the pose, metric depth along the optical axis, NaN outside

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from drivers.interfaces import Arm, JointTrajectory
+from drivers.interfaces import Arm, ArmAbilities, JointTrajectory
 from planners.clouds import Cloud
 from planners.config import CutPathConfig
 from planners.cutpath import CutPath, plan_cut_path, torch_kinematics
@@ -123,9 +123,13 @@ def write_trajectory(path: CutPath, file) -> None:
     np.savez_compressed(file, **arrays)
 
 
-def dry_run_cut(arm: Arm, kin: Kinematics, path: CutPath) -> dict:
+def dry_run_cut(arm: Arm, kin: Kinematics, path: CutPath, abilities: ArmAbilities | None = None) -> dict:
     """Run every feasible branch (approach, cut, retract) on the arm, torch off, and measure the
-    torch tip against the plan: at the same instant, and as distance from the planned path."""
+    torch tip against the plan: at the same instant, and as distance from the planned path. The
+    contacts come from a ``ContactLog`` arm, the tip's tracking from a ``MotionLog`` arm (``abilities``:
+    the arm's, as checked where it was wired; default: checked now)."""
+    abilities = abilities if abilities is not None else ArmAbilities.of(arm)
+    contact_log, motion_log = abilities.contacts, abilities.motion_log
     planned_tip, errors_t, errors_path, contacts, moved = [], [], [], [], 0
     for i, b in enumerate(path.branches):
         if not b.feasible:
@@ -138,12 +142,12 @@ def dry_run_cut(arm: Arm, kin: Kinematics, path: CutPath) -> dict:
                 jq = np.vstack([q_now, jq[1:]])
             arm.execute(JointTrajectory(jp.times, jq, jp.velocities))
             moved += 1
-            contacts += [{**c, "cut": i, "phase": phase} for c in getattr(arm, "last_motion_contacts", [])]
-            if phase != "cut":
+            if contact_log is not None:
+                contacts += [{**c, "cut": i, "phase": phase} for c in contact_log.last_motion_contacts]
+            if phase != "cut" or motion_log is None:
                 continue
-            desired = getattr(arm, "last_motion_desired", None)
-            actual = getattr(arm, "last_motion_actual", None)
-            if desired is None or actual is None or len(actual) == 0:
+            desired, actual = motion_log.last_motion_desired, motion_log.last_motion_actual
+            if len(actual) == 0:
                 continue
             ok = np.all(np.isfinite(actual), axis=1)
             tip_des = kin.fk_positions(desired[ok])

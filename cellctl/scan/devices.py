@@ -26,7 +26,8 @@ from typing import Iterator
 import numpy as np
 
 from cellctl.config import CellConfig
-from drivers.interfaces import Arm, DeviceError, JointTrajectory, RGBDCamera, RGBDFrame
+from drivers.interfaces import (Arm, ArmWrapper, ContactLog, DeviceError, JointTrajectory, MotionCounter, MotionLog,
+                                RGBDCamera, RGBDFrame)
 from sim.config import HandEyeConfig, TwinConfig
 from sim.scenes.model import Scene
 
@@ -111,11 +112,12 @@ def open_devices(cfg: CellConfig, scene: Scene, twin_cfg: TwinConfig, *, run_dir
         yield Devices("real", franky, camera, scene, None, describe(cfg))
 
 
-class MirroredCamera:
+class MirroredCamera(RGBDCamera):
     """The twin's D435 rendering from wherever the real (or franky-sim) arm measures it is: the twin's
-    robot is set to the arm's joints before each capture (implements ``RGBDCamera``)."""
+    robot is set to the arm's joints before each capture (implements ``RGBDCamera``). Of the twin
+    camera's own extras it passes on ``last_truth`` and ``render_truth``."""
 
-    def __init__(self, twin_camera: RGBDCamera, twin_arm, arm: Arm) -> None:
+    def __init__(self, twin_camera, twin_arm, arm: Arm) -> None:
         self._camera, self._twin_arm, self._arm = twin_camera, twin_arm, arm
         self.intrinsics = twin_camera.intrinsics
         self._lock = threading.Lock()
@@ -131,42 +133,46 @@ class MirroredCamera:
             self.sync()
             return self._camera.capture()
 
-    def __getattr__(self, name: str):  # twin extras (last_truth, render_truth, ...)
-        return getattr(self._camera, name)
+    @property
+    def last_truth(self) -> np.ndarray | None:
+        """The noise-free depth of the last capture (the twin camera's)."""
+        return self._camera.last_truth
+
+    def render_truth(self, T_base_cam: np.ndarray | None = None) -> np.ndarray:
+        """Noise-free depth at ``T_base_cam`` (default: the twin robot's camera pose, the arm's as of the
+        last capture or motion)."""
+        return self._camera.render_truth(T_base_cam)
 
 
-class TwinCheckedArm:
+class TwinCheckedArm(ArmWrapper, ContactLog):
     """The franky arm, plus the twin's own contact check of what it did: after each ``execute()`` the
     measured joints are replayed on the twin's robot against the scene (``last_motion_contacts``, as
-    the twin reports for its own motions), and the twin's robot is left where the arm is. Everything
-    else is the franky arm's (implements ``Arm``)."""
+    the twin reports for its own motions), and the twin's robot is left where the arm is. The franky
+    arm's optional abilities are passed on (``ArmWrapper``: ``Recoverable``, ``EventLog``, ``MotionLog``,
+    ``MotionCounter``). The wrapped arm must count and log its motions (TypeError otherwise)."""
 
-    def __init__(self, arm, twin_arm) -> None:
-        self._arm, self._twin_arm = arm, twin_arm
-        self.model = arm.model
+    def __init__(self, arm: Arm, twin_arm) -> None:
+        if not (isinstance(arm, MotionCounter) and isinstance(arm, MotionLog)):
+            raise TypeError(f"TwinCheckedArm replays the motions the arm measured: {type(arm).__name__} is not "
+                            f"both a MotionCounter and a MotionLog")
+        super().__init__(arm)
+        self._measured: MotionLog = arm
+        self._count: MotionCounter = arm
+        self._twin_arm = twin_arm
         self.last_motion_contacts: list[dict] = []
-
-    def joint_positions(self) -> np.ndarray:
-        return self._arm.joint_positions()
-
-    def camera_pose(self) -> np.ndarray:
-        return self._arm.camera_pose()
-
-    def stop(self) -> None:
-        self._arm.stop()
 
     def execute(self, trajectory: JointTrajectory) -> float:
         self.last_motion_contacts = []
-        sent = self._arm.motions_sent
+        sent = self._count.motions_sent
         try:
             return self._arm.execute(trajectory)
         finally:
-            if self._arm.motions_sent != sent:  # something moved (refusals move nothing)
+            if self._count.motions_sent != sent:  # something moved (refusals move nothing)
                 self._replay()
 
     def _replay(self) -> None:
         try:
-            Q = np.asarray(self._arm.last_motion_actual, dtype=np.float64).reshape(-1, 7)
+            Q = np.asarray(self._measured.last_motion_actual, dtype=np.float64).reshape(-1, 7)
             Q = np.vstack([Q, self._arm.joint_positions()])
             keep = [0]
             for k in range(1, len(Q)):  # samples MIRROR_STEP_RAD apart, and the last
@@ -177,9 +183,6 @@ class TwinCheckedArm:
             self.last_motion_contacts = list(self._twin_arm.mirror(Q[keep]))
         except (DeviceError, ValueError):  # the arm's own error is what the caller must see
             pass
-
-    def __getattr__(self, name: str):  # recover(), events, last_motion, last_motion_desired/actual, ...
-        return getattr(self._arm, name)
 
 
 # --- readiness ------------------------------------------------------------------------------------

@@ -19,7 +19,8 @@ import numpy as np
 
 from cellctl.config import MotionConfig
 from cellctl.scan.cut import torch_shape
-from drivers.interfaces import Arm, DeviceError, JointTrajectory, RGBDCamera, RGBDFrame, TrajectoryError
+from drivers.interfaces import (Arm, ArmAbilities, DeviceError, JointTrajectory, RGBDCamera, RGBDFrame,
+                                TrajectoryError)
 from planners import clouds, raycast
 from planners.base import ScanState, ViewPlan
 from planners.clouds import Cloud
@@ -114,6 +115,7 @@ class ScanJob:
                  mcfg: MotionConfig, recorder=None, progress: Callable[[StepRecord], None] | None = None,
                  park_q: np.ndarray | None = None, cancel: threading.Event | None = None):
         self.arm, self.camera, self.pcfg, self.mcfg = arm, camera, pcfg, mcfg
+        self.abilities = ArmAbilities.of(arm)  # the arm's optional abilities, checked once here
         self.cancel = cancel  # set by another thread: the scan ends after the current step, the arm at once
         self.planner = make_planner(planner_name, pcfg)
         m = arm.model
@@ -147,7 +149,8 @@ class ScanJob:
         self.frames_without_depth = 0  # captures with no valid depth pixel since the last view that had one
         self.last_stamp: float | None = None  # timestamp of the last frame accepted or refused as empty
         self.incidents: list[dict] = []
-        self._arm_events_from = len(getattr(arm, "events", None) or [])  # the arm's own log (Franka: reflexes, recoveries)
+        log = self.abilities.events  # the arm's own log (Franka: reflexes, recoveries)
+        self._arm_events_from = len(log.events) if log is not None else 0
         self.self_filtered = 0  # points dropped because they lay on the arm
         self.last_reach_error_m = self.last_reach_error_deg = 0.0
         self.last_contacts: list[dict] = []
@@ -171,7 +174,8 @@ class ScanJob:
         path = mv.path
         err = self.arm.execute(JointTrajectory(path.times, path.positions, path.velocities))
         self.tracking_errors.append(float(err))
-        self.last_contacts = list(getattr(self.arm, "last_motion_contacts", []))  # the twin's own check
+        contacts = self.abilities.contacts  # the twin's own check
+        self.last_contacts = list(contacts.last_motion_contacts) if contacts is not None else []
         # Did the camera get there? A view from elsewhere (the arm stopped or deflected on the way)
         # must not count as the planned one.
         T = self.arm.camera_pose()
@@ -215,7 +219,7 @@ class ScanJob:
             return fn()
         except (DeviceError, TrajectoryError, Unreachable, ScanError) as e:
             self._incident(len(res.records), "cut-move", f"{what} skipped: {type(e).__name__}: {e}")
-            _, notes = stop_and_recover(self.arm)
+            _, notes = stop_and_recover(self.arm, self.abilities)
             for kind, detail in notes:
                 self._incident(len(res.records), kind, detail)
             return None
@@ -293,7 +297,7 @@ class ScanJob:
 
     def _stop_arm(self, res: ScanResult) -> None:
         """After an error the arm must not be left moving: stop it and record that it answered."""
-        res.arm_stopped, notes = stop_and_recover(self.arm)
+        res.arm_stopped, notes = stop_and_recover(self.arm, self.abilities)
         for what, detail in notes:
             self._incident(len(res.records), what, detail)
 
@@ -376,7 +380,8 @@ class ScanJob:
         finally:
             done.set()
             res.incidents = self.incidents
-            res.arm_events = [dict(e) for e in (getattr(self.arm, "events", None) or [])[self._arm_events_from:]]
+            log = self.abilities.events
+            res.arm_events = [dict(e) for e in log.events[self._arm_events_from:]] if log is not None else []
             cov = coverage(self.drawing.xyz, gt_points, self.pcfg.coverage_voxel_m)
             res.coverage_hit, res.coverage_total, res.coverage_percent = cov.hit, cov.total, round(cov.percent, 2)
             res.steps = len(res.records)
@@ -469,10 +474,11 @@ class ScanJob:
         return plan
 
 
-def stop_and_recover(arm: Arm) -> tuple[bool, list[tuple[str, str]]]:
-    """Stop the arm; an arm that then needs recovery (a Franka after a reflex or a lost connection:
-    it refuses every motion until ``recover_from_errors``) is recovered now, so the cell can take the
-    next job, and the job records it. Returns (stopped, [(incident, detail)])."""
+def stop_and_recover(arm: Arm, abilities: ArmAbilities | None = None) -> tuple[bool, list[tuple[str, str]]]:
+    """Stop the arm; a ``Recoverable`` arm that then needs recovery (a Franka after a reflex or a lost
+    connection: it refuses every motion until ``recover_from_errors``) is recovered now, so the cell can
+    take the next job, and the job records it. ``abilities``: the arm's, as checked where it was wired
+    (default: checked now). Returns (stopped, [(incident, detail)])."""
     notes: list[tuple[str, str]] = []
     try:
         arm.stop()
@@ -480,10 +486,11 @@ def stop_and_recover(arm: Arm) -> tuple[bool, list[tuple[str, str]]]:
     except Exception as e:  # noqa: BLE001 - the error being reported matters more; note this one
         stopped = False
         notes.append(("arm_stop_failed", f"{type(e).__name__}: {e}"))
-    pending = getattr(arm, "needs_recovery", None)
-    if pending and callable(getattr(arm, "recover", None)):
+    recovery = (abilities if abilities is not None else ArmAbilities.of(arm)).recovery
+    pending = recovery.needs_recovery if recovery is not None else None
+    if pending:
         try:
-            event = arm.recover()
+            event = recovery.recover()
             notes.append(("arm_recovered", f"after {pending}: {event.get('message', '') if isinstance(event, dict) else ''}"
                           .rstrip(": ")))
         except Exception as e:  # noqa: BLE001 - recorded; the next job's execute() refuses clearly

@@ -48,7 +48,7 @@ def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, arm: Arm, run_dir: Path, rec
         recorder.log_cut(len(result.records), path)
         _cut_picture(run_dir, job, path, summary, truth)
         if dry_run:
-            summary.dry_run = dry_run_cut(arm, kin, path)
+            summary.dry_run = dry_run_cut(arm, kin, path, job.abilities)
         if truth:
             summary.accuracy = cut_accuracy(truth[0], [b.points for b in path.branches if b.feasible],
                                             painted=truth[1])

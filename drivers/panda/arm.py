@@ -36,7 +36,8 @@ from typing import Callable
 import franky
 import numpy as np
 
-from drivers.interfaces import ArmModel, DeviceError, JointTrajectory, TrajectoryError
+from drivers.interfaces import (Arm, ArmModel, DeviceError, EventLog, JointTrajectory, MotionCounter, MotionLog,
+                                Recoverable, TrajectoryError)
 from drivers.panda.config import BASE_LINK, FCI_PORT, FLANGE_LINK, JOINT_NAMES, FrankaConfig
 from drivers.panda.safety import ChainKinematics, CheckedTrajectory, SafetyChecker, derivatives
 
@@ -221,9 +222,12 @@ class _Timeout(Exception):
     """A call to the robot got no answer in time (the owner thread is stuck in libfranka)."""
 
 
-class FrankaArm:
+class FrankaArm(Arm, Recoverable, EventLog, MotionLog, MotionCounter):
     """The real arm (implements ``drivers.interfaces.Arm``). Use as a context manager or ``close()``.
-    Thread-safe: joint_positions()/camera_pose()/stop() may be called while execute() runs."""
+    Thread-safe: joint_positions()/camera_pose()/stop() may be called while execute() runs. Optional
+    abilities: ``recover()`` after a reflex or a lost connection (``Recoverable``), its own ``events``
+    (``EventLog``), the joints commanded and measured during the last motion (``MotionLog``) and the
+    motions handed to the robot (``MotionCounter``)."""
 
     def __init__(self, config: FrankaConfig, *, connect: bool = True) -> None:
         self.config = config

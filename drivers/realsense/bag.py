@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.interfaces import DeviceError, Intrinsics, RGBDFrame
+from drivers.interfaces import DeviceError, Intrinsics, RGBDCamera, RGBDFrame
 from drivers.realsense.align import align_depth
 from drivers.realsense.bag_format import DISTORTION_MODELS, IMAGE_TOPIC, StreamModel, quat_to_matrix, typestore
 from drivers.realsense.frames import COLOR_FORMATS, depth_to_metres
@@ -132,7 +132,7 @@ def _frames(n: int) -> str:
     return f"{n} frame" if n == 1 else f"{n} frames"
 
 
-class RealSenseBag:
+class RealSenseBag(RGBDCamera):
     """A recorded ``.bag`` served through ``RGBDCamera``: ``capture()`` returns its colour frames in
     bag order, each with its own depth aligned to colour, then raises DeviceError. Use as a context
     manager or call ``close()``. ``metadata``: device name, serial number, fps, stream models."""

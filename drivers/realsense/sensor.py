@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from drivers.interfaces import DeviceError, Intrinsics, RGBDFrame
+from drivers.interfaces import DeviceError, Intrinsics, RGBDCamera, RGBDFrame
 from drivers.realsense.config import RealSenseConfig
 from drivers.realsense.frames import (call_with_timeout, check_color_format, clean_error, depth_scale_from_metadata,
                                       intrinsics_from_metadata, to_rgbd_frame)
@@ -73,7 +73,7 @@ def check_devices(config: RealSenseConfig, devices: list[DeviceInfo] | None = No
     return problems
 
 
-class RealSenseCamera:
+class RealSenseCamera(RGBDCamera):
     """A live D435 (implements ``drivers.interfaces.RGBDCamera``); a context manager.
 
     ``record_to``: write a ``.bag`` through the same sensor (``config.record_bag`` when None).
