@@ -197,3 +197,21 @@ def test_one_capture_gives_grid_states_and_a_frontier(cell):
     assert g.unknown[tuple(g.index_of(axis_point[None])[0][0])]
     assert g.frontier().sum() > 0
     assert coverage(seen, scene.gt_points, 0.01).percent < 90.0  # one view does not see it all
+
+
+def test_every_job_profile_is_set_up_and_recorded_alike(tmp_path):
+    """run_job is the one entry of a scan-drawing job: the initial-view profile (the load test's
+    job) is set up by the same `prepare` and writes the same result.json header as a full scan;
+    an unknown profile is refused before anything runs."""
+    from cellctl.scan.run import run_job
+
+    cfg, cfg_path = load_cell_config(None)
+    res = run_job("initial_view", cfg, cfg_path, "t_piece", "gnbv", run_dir=tmp_path / "iv", noise=False)
+    assert res.steps == 1 and res.terminated_by == "initial_view" and res.coverage_percent > 0
+    doc = json.loads((tmp_path / "iv" / "result.json").read_text())
+    assert {k: doc[k] for k in ("schema_version", "cell_id", "mode", "scene_ref", "job_profile")} == {
+        "schema_version": 1, "cell_id": cfg.cell_id, "mode": cfg.mode, "scene_ref": "t_piece",
+        "job_profile": "initial_view"}
+    with pytest.raises(ValueError, match="unknown job profile 'bogus'"):
+        run_job("bogus", cfg, cfg_path, "t_piece", "gnbv", run_dir=tmp_path / "bogus")
+    assert not (tmp_path / "bogus").exists()

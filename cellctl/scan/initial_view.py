@@ -15,26 +15,23 @@ from pathlib import Path
 from typing import Callable
 
 from cellctl.config import CellConfig
-from cellctl.scan.artifacts import write_json, write_ply
+from cellctl.scan.artifacts import write_ply
 from cellctl.scan.job import ScanResult, StepRecord
+from cellctl.scan.run import prepare, write_result
 from planners import clouds
-from planners.config import load_planners_config
 from planners.metrics import coverage
 
 
 def run_initial_view(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, seed: int | None = None,
                      noise: bool = True, run_dir: Path, cancel: threading.Event | None = None,
                      on_step: Callable[[StepRecord], None] | None = None) -> ScanResult:
-    """One view of ``scene_ref`` from its first initial-view pose (the arm is not moved). The result
-    has steps=1 and terminated_by="initial_view"; result.json is written whatever happens."""
-    from sim.scenes import load_scene
+    """One view of ``scene_ref`` from its first initial-view pose (the arm is not moved), set up and
+    recorded as every job is (cellctl.scan.run.prepare, write_result). The result has steps=1 and
+    terminated_by="initial_view"; result.json is written whatever happens."""
     from sim.twin import Twin
 
-    pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
-    scene = load_scene(scene_ref)
-    cam_cfg = cfg.twin.camera.model_copy(update={"noise": noise, **({"seed": seed} if seed is not None else {})})
-    twin_cfg = cfg.twin.model_copy(update={"camera": cam_cfg})
-    run_dir.mkdir(parents=True, exist_ok=True)
+    setup = prepare(cfg, cfg_path, scene_ref, planner, seed=seed, noise=noise, run_dir=run_dir)
+    pcfg, scene, twin_cfg = setup.pcfg, setup.scene, setup.twin_cfg
     result = ScanResult(scene=scene.name, planner=planner)
     try:
         if cancel is not None and cancel.is_set():
@@ -72,6 +69,5 @@ def run_initial_view(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
         result.terminated_by = result.terminated_by or "error"
         raise
     finally:
-        write_json(run_dir / "result.json", {"schema_version": 1, "cell_id": cfg.cell_id, "scene_ref": scene_ref,
-                                             "job_profile": "initial_view", **result.to_dict()})
+        write_result(run_dir, cfg, scene_ref, result, "initial_view")
     return result

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import sys
 import threading
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -20,9 +20,10 @@ from cellctl.scan.job import ScanJob, ScanResult, StepRecord
 from cellctl.scan.plots import coverage_figure, cut_figure
 from cellctl.scan.recording import ScanRecorder
 from drivers.interfaces import Arm
-from planners.config import load_planners_config
+from planners.config import PlannersConfig, load_planners_config
 from planners.metrics import cut_accuracy
-from sim.scenes import load_scene
+from sim.config import TwinConfig
+from sim.scenes import Scene, load_scene
 
 
 def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, arm: Arm, run_dir: Path, recorder: ScanRecorder,
@@ -84,6 +85,60 @@ def _cut_picture(run_dir: Path, job: ScanJob, path, summary, truth: tuple | None
         summary.issues.append(f"could not draw cut.png: {type(e).__name__}: {e}")
 
 
+@dataclass(frozen=True)
+class JobSetup:
+    """What every job profile starts from: the planners' config, the scene, the twin's config for
+    this job's noise seed, and its run folder (created)."""
+
+    pcfg: PlannersConfig
+    scene: Scene
+    twin_cfg: TwinConfig
+    run_dir: Path
+
+
+def prepare(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, seed: int | None = None,
+            noise: bool = True, max_steps: int | None = None, run_dir: Path | None = None,
+            out: str | None = None) -> JobSetup:
+    """The set-up of a job; ``run_dir``: this folder (the service's per-job folder), else a new
+    stamped one under ``out`` (default: the cell's runs_dir)."""
+    pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
+    if max_steps is not None:
+        pcfg = pcfg.model_copy(update={"max_steps": max_steps})
+    scene = load_scene(scene_ref)
+    cam_cfg = cfg.twin.camera.model_copy(update={"noise": noise, **({"seed": seed} if seed is not None else {})})
+    twin_cfg = cfg.twin.model_copy(update={"camera": cam_cfg, "tool": twin_torch(pcfg.cutpath)})
+    if run_dir is None:
+        run_dir = new_run_dir(out or cfg.runs_dir, scene.name, planner)
+    else:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    return JobSetup(pcfg, scene, twin_cfg, run_dir)
+
+
+def write_result(run_dir: Path, cfg: CellConfig, scene_ref: str, result: ScanResult, profile: str = "scan") -> None:
+    """The job's result.json: the one record of a run folder, whatever the profile."""
+    write_json(run_dir / "result.json", {"schema_version": 1, "cell_id": cfg.cell_id, "mode": cfg.mode,
+                                         "scene_ref": scene_ref, "job_profile": profile, **result.to_dict()})
+
+
+def run_job(profile: str, cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, run_dir: Path,
+            seed: int | None = None, noise: bool = True, max_steps: int | None = None, dry_run_cut: bool = False,
+            cancel: threading.Event | None = None, on_step: Callable[[StepRecord], None] | None = None,
+            on_phase: Callable[[str], None] | None = None, arm_host: str | None = None) -> ScanResult:
+    """A scan-drawing job by its profile (``service.job_profile``): "scan", the whole job
+    (``run_scan_in_twin``), or "initial_view", its first view only (cellctl.scan.initial_view)."""
+    if profile == "initial_view":
+        from cellctl.scan.initial_view import run_initial_view
+
+        return run_initial_view(cfg, cfg_path, scene_ref, planner, seed=seed, noise=noise, run_dir=run_dir,
+                                cancel=cancel, on_step=on_step)
+    if profile != "scan":
+        raise ValueError(f"unknown job profile {profile!r}; choose scan or initial_view")
+    result, _ = run_scan_in_twin(cfg, cfg_path, scene_ref, planner, seed=seed, noise=noise, max_steps=max_steps,
+                                 progress=False, cut=True, dry_run_cut=dry_run_cut, run_dir=run_dir, cancel=cancel,
+                                 on_step=on_step, on_phase=on_phase, arm_host=arm_host)
+    return result
+
+
 def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, seed: int | None = None,
                      noise: bool = True, out: str | None = None, max_steps: int | None = None,
                      progress: bool = True, cut: bool = True, dry_run_cut: bool = False,
@@ -96,16 +151,9 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
     folder) instead of a new stamped one under ``out``. ``cancel``: set from another thread to end the
     scan early ("cancelled", partial result kept, no cut). ``on_step`` gets every StepRecord,
     ``on_phase`` "scanning" / "planning-cut"."""
-    pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
-    if max_steps is not None:
-        pcfg = pcfg.model_copy(update={"max_steps": max_steps})
-    scene = load_scene(scene_ref)
-    cam_cfg = cfg.twin.camera.model_copy(update={"noise": noise, **({"seed": seed} if seed is not None else {})})
-    twin_cfg = cfg.twin.model_copy(update={"camera": cam_cfg, "tool": twin_torch(pcfg.cutpath)})
-    if run_dir is None:
-        run_dir = new_run_dir(out or cfg.runs_dir, scene.name, planner)
-    else:
-        run_dir.mkdir(parents=True, exist_ok=True)
+    setup = prepare(cfg, cfg_path, scene_ref, planner, seed=seed, noise=noise, max_steps=max_steps, run_dir=run_dir,
+                    out=out)
+    pcfg, scene, twin_cfg, run_dir = setup.pcfg, setup.scene, setup.twin_cfg, setup.run_dir
     recorder = ScanRecorder(run_dir / "scan.rrd", f"{scene.name}-{planner}", cfg.rerun_connect)
     result = ScanResult(scene=scene.name, planner=planner)
     job = None
@@ -146,8 +194,7 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
         result.terminated_by = result.terminated_by or "error"
         raise
     finally:
-        write_json(run_dir / "result.json", {"schema_version": 1, "cell_id": cfg.cell_id, "mode": cfg.mode,
-                                             "scene_ref": scene_ref, **result.to_dict()})
+        write_result(run_dir, cfg, scene_ref, result)
         recorder.close()
     return result, run_dir
 

@@ -173,8 +173,8 @@ def _worker_main(jobs, msgs, stop, parent_pid: int) -> None:
     # the unit: the service decides how its job ends, so here both only ask the job to stop.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    from cellctl.scan.initial_view import run_initial_view  # the heavy imports, once, before the first job
-    from cellctl.scan.run import run_scan_in_twin
+    import cellctl.scan.initial_view  # noqa: F401 - the heavy imports, before the first job
+    from cellctl.scan.run import run_job
 
     while True:
         try:
@@ -189,15 +189,10 @@ def _worker_main(jobs, msgs, stop, parent_pid: int) -> None:
                                 "drawing_points": r.drawing_points}))
 
         try:
-            if spec.profile == "initial_view":
-                result = run_initial_view(spec.cfg, spec.cfg_path, spec.scene, spec.planner, seed=spec.seed,
-                                          noise=spec.noise, run_dir=spec.run_dir, cancel=stop, on_step=on_step)
-            else:
-                result, _ = run_scan_in_twin(spec.cfg, spec.cfg_path, spec.scene, spec.planner, seed=spec.seed,
-                                             noise=spec.noise, max_steps=spec.max_steps, progress=False, cut=True,
-                                             dry_run_cut=spec.dry_run_cut, run_dir=spec.run_dir, cancel=stop,
-                                             on_step=on_step, on_phase=lambda p: msgs.send(("phase", p)),
-                                             arm_host=spec.arm_host)
+            result = run_job(spec.profile, spec.cfg, spec.cfg_path, spec.scene, spec.planner, run_dir=spec.run_dir,
+                             seed=spec.seed, noise=spec.noise, max_steps=spec.max_steps, dry_run_cut=spec.dry_run_cut,
+                             cancel=stop, on_step=on_step, on_phase=lambda p: msgs.send(("phase", p)),
+                             arm_host=spec.arm_host)
             msgs.send(("result", summary_of(result).model_dump_json(), result.error))
         except Exception as e:  # noqa: BLE001 - a failed job: say why, keep what was written
             summary = summary_from_file(spec.run_dir / "result.json")
