@@ -27,6 +27,8 @@ import pybullet_data
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from configs.panda import (BASE_LINK, FLANGE_LINK, JOINT_NAMES, PANDA_MAX_ACCELERATION, PANDA_MAX_JERK,
+                           PANDA_MAX_TORQUE, PANDA_MAX_VELOCITY, PANDA_URDF)
 from drivers.interfaces import (Arm, ArmModel, ContactLog, DeviceError, Intrinsics, JointTrajectory, MotionLog,
                                 RGBDCamera, RGBDFrame, TrajectoryError)
 from sim.config import TwinConfig
@@ -34,19 +36,13 @@ from sim.d435 import apply_depth_noise, grazing_mask, intrinsics_for
 from sim.faults import FaultyArm, FaultyCamera, place_out_of_reach
 from sim.scenes.model import Scene
 
-PANDA_URDF = os.path.join(pybullet_data.getDataPath(), "franka_panda", "panda.urdf")
 PLANE_URDF = os.path.join(pybullet_data.getDataPath(), "plane.urdf")
-JOINT_NAMES: tuple[str, ...] = tuple(f"panda_joint{i}" for i in range(1, 8))
 FINGER_NAMES: tuple[str, ...] = ("panda_finger_joint1", "panda_finger_joint2")
-BASE_LINK = "panda_link0"
-FLANGE_LINK = "panda_hand"
 TOOL_LINK = "tool"  # how contacts of TwinConfig.tool are named
 TOOL_STEP_M = 0.0005  # the tool's contacts are queried after this much travel of any of its points
-# Franka's published limits (Panda datasheet).
-MAX_VELOCITY = np.array([2.175] * 4 + [2.61] * 3)
-MAX_ACCELERATION = np.array([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])
-MAX_JERK = np.array([7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0])
-MAX_TORQUE = np.array([87.0] * 4 + [12.0] * 3)
+# Franka's published limits (configs/panda.py)
+MAX_VELOCITY, MAX_ACCELERATION, MAX_JERK, MAX_TORQUE = (PANDA_MAX_VELOCITY, PANDA_MAX_ACCELERATION, PANDA_MAX_JERK,
+                                                        PANDA_MAX_TORQUE)
 FINGER_OPENING = 0.02  # m per finger, held still
 
 # Trajectory acceptance.

@@ -8,16 +8,15 @@ instead of silently falling back to a default.
 from __future__ import annotations
 
 import ipaddress
-import os
 import re
 from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-import pybullet_data
 from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
 from configs.loading import load_yaml_model
+from configs.panda import BASE_LINK, FLANGE_LINK, JOINT_NAMES, PANDA_URDF  # noqa: F401 - the arm's description
 from configs.poses import HandEyeBase, Vec3
 
 _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
@@ -25,12 +24,6 @@ _STRICT = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=Tr
 Vec6 = Annotated[list[float], Field(min_length=6, max_length=6)]
 Vec7 = Annotated[list[float], Field(min_length=7, max_length=7)]
 
-#: The URDF the twin and the planners use. Its kinematics equal the FR3's (same DH parameters;
-#: panda_hand = FR3 link8 rotated -45 deg about z), so one file serves both models.
-PANDA_URDF = os.path.join(pybullet_data.getDataPath(), "franka_panda", "panda.urdf")
-JOINT_NAMES: tuple[str, ...] = tuple(f"panda_joint{i}" for i in range(1, 8))
-BASE_LINK = "panda_link0"
-FLANGE_LINK = "panda_hand"  # where the camera is mounted (same frame as the twin's)
 FCI_PORT = 1337  # libfranka's command port (fixed by the protocol)
 
 _LABEL = r"[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
