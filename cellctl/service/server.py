@@ -3,8 +3,9 @@
 Jobs run one at a time, in submission order (there is one arm), in the cell's job worker process
 (cellctl.service.worker), which one queue thread feeds and waits for; the Zenoh callbacks only
 validate, queue and read the store, so the cell answers status and job queries while a scan runs,
-and a job that crashes ends as failed while the cell serves on. Every job's life is in the SQLite store before anyone is told about it: a client that sees
-an event can always read the matching record."""
+and a job that crashes ends as failed while the cell serves on. Every job's life is in the SQLite
+store before anyone is told about it: a client that sees an event can always read the matching
+record."""
 
 from __future__ import annotations
 

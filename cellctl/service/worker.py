@@ -58,7 +58,6 @@ class Outcome:
 
     summary: ResultSummary | None
     error: str | None
-    exitcode: int | None  # of a worker that died during the job
     crashed: bool  # the worker died before it sent the result
 
 
@@ -121,14 +120,14 @@ class Worker:
         except (EOFError, OSError):  # the worker's end closed: it is gone
             pass
         if got_result:
-            return Outcome(summary, error, None, False)
+            return Outcome(summary, error, False)
         self.proc.join(5.0)
         code = self.proc.exitcode
         how = (f"was killed by {signal.Signals(-code).name}" if code is not None and code < 0
                else f"exited with status {code}")
         error = f"the job's worker process {how} before the job ended (pid {self.proc.pid}); what it wrote is kept"
         self.close()
-        return Outcome(summary_from_file(spec.run_dir / "result.json"), error, code, True)
+        return Outcome(summary_from_file(spec.run_dir / "result.json"), error, True)
 
     def close(self, timeout_s: float = 5.0) -> None:
         """End the worker: asked to, then killed (a job still running holds the arm). Idempotent."""
