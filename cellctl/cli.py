@@ -173,6 +173,7 @@ def _status(client, args: argparse.Namespace) -> int:
 
 
 def _print_summary(r, run_dir: Path) -> None:
+    """A ScanResult, or its API summary (cellctl.scan.result): the same fields."""
     rows = [
         ("scene", r.scene), ("planner", r.planner),
         ("views", f"{r.steps} captured (initial included; the paper's viewpoints: {max(r.steps - 1, 0)})"),
@@ -184,32 +185,28 @@ def _print_summary(r, run_dir: Path) -> None:
         ("coverage", f"{r.coverage_hit}/{r.coverage_total} voxels = {r.coverage_percent:.1f} %"),
         ("terminated by", r.terminated_by),
     ]
-    if r.cut:
-        c = r.cut if isinstance(r.cut, dict) else r.cut.model_dump()  # ScanResult or api.ResultSummary
-        frac, drawing = c.get("cut_fraction"), c.get("drawing_length_m")
+    if c := r.cut:
         uncut: dict[str, float] = {}
-        for g in c.get("gaps") or []:
-            if g["length_m"] > 0:
-                uncut[g["reason"]] = uncut.get(g["reason"], 0.0) + g["length_m"]
-        what = (f"{100 * frac:.1f} % of the {drawing:.3f} m drawing, " if frac is not None and drawing else "")
-        rows.append(("cut path", what + f"{c['feasible_branches']} cuts"
-                                 + (f" ({c['branches'] - c['feasible_branches']} not runnable)"
-                                    if c["branches"] > c["feasible_branches"] else "")
+        for g in c.gaps:
+            if g.length_m > 0:
+                uncut[g.reason] = uncut.get(g.reason, 0.0) + g.length_m
+        what = f"{100 * c.cut_fraction:.1f} % of the {c.drawing_length_m:.3f} m drawing, " if c.drawing_length_m else ""
+        rows.append(("cut path", what + f"{c.feasible_branches} cuts"
+                                 + (f" ({c.branches - c.feasible_branches} not runnable)"
+                                    if c.branches > c.feasible_branches else "")
                                  + ("; uncut: " + ", ".join(f"{1000 * v:.0f} mm {k}" for k, v in sorted(uncut.items()))
                                     if uncut else "")
-                                 + (f"; {c['error']}" if c["error"] else "")))
-        for msg in c.get("issues") or c.get("warnings") or []:
+                                 + (f"; {c.error}" if c.error else "")))
+        for msg in c.warnings:
             rows.append(("warning", msg))
-        if c.get("accuracy"):
-            a = c["accuracy"]
-            rows.append(("cut vs true line", f"{100 * a['cut_coverage']:.1f} % of the line within 5 mm of a cut; "
-                                             f"path to line mean {a['path_to_line_mean_mm']} mm, max "
-                                             f"{a['path_to_line_max_mm']} mm; {a['cuts']} cuts for {a['strokes']} strokes"))
-        if c.get("dry_run"):
-            d = c["dry_run"]
-            rows.append(("dry-run cut", f"{d['motions']} motions, tip error max {d['tip_error_max_mm']} mm "
-                                        f"(median {d['tip_error_median_mm']}), off the path max "
-                                        f"{d['path_error_max_mm']} mm, {_count(d['contacts'])} contacts"))
+        if a := c.accuracy:
+            rows.append(("cut vs true line", f"{100 * a.cut_coverage:.1f} % of the line within 5 mm of a cut; "
+                                             f"path to line mean {a.path_to_line_mean_mm} mm, max "
+                                             f"{a.path_to_line_max_mm} mm; {a.cuts} cuts for {a.strokes} strokes"))
+        if d := c.dry_run:
+            rows.append(("dry-run cut", f"{d.motions} motions, tip error max {d.tip_error_max_mm} mm "
+                                        f"(median {d.tip_error_median_mm}), off the path max "
+                                        f"{d.path_error_max_mm} mm, {d.contacts} contacts"))
     if r.error:
         rows.append(("error", r.error))
     rows.append(("run folder", str(run_dir)))
@@ -217,10 +214,6 @@ def _print_summary(r, run_dir: Path) -> None:
     print()
     for k, v in rows:
         print(f"  {k:<{w}}  {v}")
-
-
-def _count(x) -> int:
-    return x if isinstance(x, int) else len(x)
 
 
 def _client_args(p: argparse.ArgumentParser) -> None:

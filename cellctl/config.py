@@ -7,6 +7,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from cellctl.scan.modes import MODES, ModeName
 from configs import CONFIG_DIR
 from drivers.panda.config import FrankaConfig, HandEye
 from drivers.realsense.config import RealSenseConfig
@@ -89,18 +90,15 @@ class FciSimConfig(BaseModel):
     start_timeout_s: float = Field(60.0, gt=0, le=600, description="embedded: longest wait for the simulator")
 
 
-MODES_WITH_ARM = ("fcisim", "real")
-
-
 class CellConfig(BaseModel):
     """``mode``: sim = the pybullet twin moves and sees; fcisim = the franky adapter drives franky-sim and
     the twin renders the camera from the arm's measured joints; real = the Franka and the D435
-    (docs/HARDWARE.md, "Running the cell")."""
+    (docs/HARDWARE.md, "Running the cell"). Each mode is a class of cellctl.scan.modes."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     cell_id: str = Field("sim-1", pattern=r"^[A-Za-z0-9_-]{1,64}$")
-    mode: Literal["sim", "fcisim", "real"] = "sim"
+    mode: ModeName = "sim"
     arm: FrankaConfig | None = Field(None, description="fcisim and real: the franky adapter (drivers.panda)")
     camera: RealSenseConfig | None = Field(None, description="real: the D435 (drivers.realsense)")
     fcisim: FciSimConfig = Field(default_factory=FciSimConfig)
@@ -116,36 +114,8 @@ class CellConfig(BaseModel):
     @model_validator(mode="after")
     def _devices_for_the_mode(self) -> "CellConfig":
         """Each mode gets the device blocks it drives; the message names the field to fix."""
-        if self.mode in MODES_WITH_ARM and self.arm is None:
-            raise ValueError(f"arm: mode {self.mode} needs an `arm:` block (drivers.panda FrankaConfig: host, model, "
-                             f"hand_eye, ...; see configs/cell.{'fcisim' if self.mode == 'fcisim' else 'real'}.yaml)")
-        if self.mode == "real" and self.camera is None:
-            raise ValueError("camera: mode real needs a `camera:` block (drivers.realsense RealSenseConfig: serial, "
-                             "modes, ...; see configs/cell.real.yaml)")
-        if self.mode == "real" and self.camera.bag is not None:
-            raise ValueError(f"camera.bag: a real cell streams the live D435 while the arm moves; {self.camera.bag} "
-                             f"can only be replayed offline (drivers.realsense.RealSenseBag)")
-        if self.mode == "fcisim":
-            arm = self.arm
-            if arm.model != "fr3":
-                raise ValueError(f"arm.model: franky-sim simulates an FR3 (robot server version 10); mode fcisim "
-                                 f"needs arm.model: fr3, got {arm.model!r}")
-            if arm.realtime:
-                raise ValueError("arm.realtime: must be false in mode fcisim (franky-sim is no real-time "
-                                 "controller, and libfranka would take a core at real-time priority)")
-            if self.fcisim.simulator == "embedded" and not _is_loopback(arm.host):
-                raise ValueError(f"arm.host: with fcisim.simulator embedded the simulator binds a loopback address "
-                                 f"(the first free one from arm.host on); got {arm.host!r}, use e.g. 127.0.0.1")
+        MODES[self.mode].check(self)
         return self
-
-
-def _is_loopback(host: str) -> bool:
-    import ipaddress
-
-    try:
-        return ipaddress.ip_address(host).is_loopback and ipaddress.ip_address(host).version == 4
-    except ValueError:
-        return False
 
 
 DEFAULT_CELL_CONFIG = CONFIG_DIR / "cell.sim.yaml"

@@ -89,7 +89,6 @@ class ConstrainedNBV:
         keep = cl.usable[cl.lab]
         ijk, frontier, lab = cl.ijk[keep], cl.centers[keep], cl.lab[keep]
         timings = {"frontier_s": time.perf_counter() - t0}
-        empty = np.zeros((0, 4, 4))
         if len(frontier) == 0:
             return self._at_edges(state, "frontier", cl.centers, timings)
         eyes = self._search_space(grid, frontier[:: max(1, len(frontier) // cfg.cnbv_max_frontier)])

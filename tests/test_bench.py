@@ -1,5 +1,8 @@
 """`cellctl bench`: the report on a hand-made bench.json (fast), the bench loop with a fake scanner
-(fast), and one real `--quick` bench in the twin (slow, ~1-2 min)."""
+(fast), and one real `--quick` bench in the twin (slow, ~1-2 min).
+
+Tests of: cellctl.bench.scans, cellctl.bench.report, cellctl.bench.machine, cellctl.bench.scoring, cellctl.bench.stats.
+"""
 
 from __future__ import annotations
 
@@ -14,7 +17,7 @@ import pytest
 
 from cellctl.bench import report, scans
 from cellctl.bench.report import PAPER_TABLE_II
-from cellctl.scan.job import ScanResult
+from cellctl.scan.result import ScanResult
 from planners.registry import PLANNERS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -163,12 +166,12 @@ def test_parse_list():
 
 
 def test_run_record_uses_the_papers_viewpoint_count():
-    r = ScanResult("s", "gnbv", steps=5, planning_s=8.0, displacement_m=0.5, coverage_hit=3, coverage_total=4,
+    r = ScanResult(scene="s", planner="gnbv", steps=5, planning_s=8.0, displacement_m=0.5, coverage_hit=3, coverage_total=4,
                    coverage_percent=75.0, terminated_by="quality")
     rec = scans.run_record("s", 1, "gnbv", 0, r, "runs/x", 3.0, 12.0)
     assert rec["views"] == 5 and rec["viewpoints"] == 4 and rec["step_s"] == 2.0
     assert rec["coverage"] == {"hit": 3, "total": 4, "percent": 75.0}
-    only_initial = scans.run_record("s", 1, "gnbv", 0, ScanResult("s", "gnbv", steps=1, planning_s=1.0),
+    only_initial = scans.run_record("s", 1, "gnbv", 0, ScanResult(scene="s", planner="gnbv", steps=1, planning_s=1.0),
                                     None, 1.0, None)
     assert only_initial["viewpoints"] == 0 and only_initial["step_s"] is None
 
@@ -190,7 +193,7 @@ def test_bench_goes_on_after_failures(monkeypatch, tmp_path):
             raise RuntimeError("planner crashed")
         held = np.ones(20 * 2**20, dtype=np.uint8) if (planner, seed) == ("gnbv", 0) else None  # 20 MiB at peak
         del held
-        r = ScanResult(scene, planner, steps=3, planning_s=1.5, coverage_hit=5, coverage_total=10,
+        r = ScanResult(scene=scene, planner=planner, steps=3, planning_s=1.5, coverage_hit=5, coverage_total=10,
                        coverage_percent=50.0, terminated_by="quality")
         if seed == 1:
             r.error, r.terminated_by = "Unreachable: nowhere to go", "error"
@@ -315,3 +318,13 @@ def test_scoring_bench_compares_exact_and_coarse_to_fine_on_the_same_states(tmp_
         assert row["best_gain_exact"] > 0 and row["best_gain_coarse_to_fine"] > 0
         assert row["same_best_view"] == (row["best_view_offset_m"] == 0.0)
     assert "| i_beam | 1 |" in (tmp_path / "scoring.md").read_text()
+
+
+def test_a_bench_tail_figure_is_a_value_that_was_measured():
+    """cellctl.bench.stats.summary: nearest-rank tail percentiles (p90 of 1..10 is 9, not 9.1), the usual
+    median, no sample no figure."""
+    from cellctl.bench.stats import summary
+
+    s = summary(list(range(10, 0, -1)))
+    assert (s["n"], s["min"], s["median"], s["p90"], s["p99"], s["max"]) == (10, 1, 5.5, 9, 10, 10)
+    assert summary([]) is None

@@ -1,7 +1,10 @@
 """The cell's modes without a robot: the config refuses a mode without the devices it drives (naming the
 field), a real cell whose robot does not answer starts anyway, reports itself not ready with the reason and
 refuses jobs with `cell_not_ready` (a real `cellctl serve` on loopback, nothing mocked), and `cellctl
-doctor` says what this machine lacks (no camera, no robot here)."""
+doctor` says what this machine lacks (no camera, no robot here).
+
+Tests of: cellctl.config, cellctl.scan.modes, cellctl.scan.devices, cellctl.commissioning.doctor, configs.loading.
+"""
 
 from __future__ import annotations
 
@@ -149,7 +152,7 @@ def test_the_twin_mirrors_joints_beyond_its_own_limits_and_refuses_junk():
 
     from arm_contract import HOME_Q, _far_box_scene
     from cellctl.scan.fcisim import FrankySim
-    from drivers.panda.safety import ChainKinematics
+    from configs.chain import Chain
     from sim.config import TwinConfig
     from sim.twin import Twin
 
@@ -158,7 +161,7 @@ def test_the_twin_mirrors_joints_beyond_its_own_limits_and_refuses_junk():
     with Twin(_far_box_scene(), TwinConfig()) as twin:
         assert twin.arm.mirror(q) == []
         assert np.allclose(twin.arm.joint_positions(), q)
-        fk = ChainKinematics(twin.arm.model.urdf_path, twin.arm.model.joint_names, "panda_hand")
+        fk = Chain.from_urdf(twin.arm.model.urdf_path, twin.arm.model.joint_names, "panda_hand")
         assert np.allclose(twin.arm.camera_pose(), fk.poses(q[None])[0] @ twin.arm.model.T_flange_cam, atol=1e-6)
         for bad in (q[:6], np.full(7, np.nan), np.zeros((0, 7))):
             with pytest.raises(ValueError, match="mirror\\(\\) needs finite joint samples"):
@@ -199,3 +202,27 @@ def test_a_setting_given_twice_is_refused_with_both_lines(tmp_path):
     msg = str(e.value)
     first = text.splitlines().index("  framed_views: true") + 1
     assert str(p) in msg and "duplicate key 'framed_views'" in msg and f"line {first}" in msg, msg
+
+
+def test_each_mode_is_one_class_that_the_config_the_api_and_the_devices_read():
+    """cellctl.scan.modes is the one registry: the config's and the status's mode fields list its modes,
+    each mode defines its own opening, readiness and description, and open_devices goes through it."""
+    from typing import get_args
+
+    from cellctl.config import CellConfig
+    from cellctl.scan.devices import check_readiness, open_devices
+    from cellctl.scan.modes import MODES, DeviceMode
+    from cellctl.service.api import CellStatus
+    from sim.config import TwinConfig
+    from sim.scenes import load_scene
+
+    assert list(MODES) == ["sim", "fcisim", "real"]
+    assert set(get_args(CellConfig.model_fields["mode"].annotation)) == set(MODES)
+    assert set(CellStatus.model_json_schema()["properties"]["mode"]["enum"]) == set(MODES)
+    for mode in MODES.values():
+        assert all(getattr(type(mode), f) is not getattr(DeviceMode, f) for f in ("open", "readiness", "describe"))
+        assert mode.summary in CellStatus.model_fields["mode"].description
+    cfg = CellConfig()
+    assert check_readiness(cfg).ready
+    with open_devices(cfg, load_scene("smooth_cylinder"), TwinConfig()) as dev:
+        assert dev.mode == "sim" and dev.twin is not None and dev.description == MODES["sim"].describe(cfg)

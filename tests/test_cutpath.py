@@ -1,5 +1,9 @@
 """Cut path from the drawing: skeleton graph, smoothing and spacing, torch poses on the surface,
-IK along the path, files. Synthetic clouds whose answer is known, and two catalog scenes."""
+IK along the path, files. Synthetic clouds whose answer is known, and two catalog scenes.
+
+Tests of: planners.cutpath.plan, planners.cutpath.pieces, planners.cutpath._checks, planners.cutpath.config,
+planners.cutpath.model.
+"""
 
 from __future__ import annotations
 

@@ -50,3 +50,16 @@ def test_frontier_sits_where_the_drawing_leaves_the_seen_area():
     g.set_drawing(more[(np.abs(more[:, 1] - 0.2) < 0.01) & (more[:, 0] > 0.15) & (more[:, 0] < 0.34)])
     _, n_after = frontier_clusters(g.frontier(), 3)
     assert n_after == 0
+
+
+def test_a_segment_is_blocked_only_by_the_cells_it_crosses():
+    """planners.raycast.segments_blocked: the sight-line check the planners' visibility rests on."""
+    from planners.raycast import segments_blocked
+
+    shape = np.array([10, 10, 10], dtype=np.int64)
+    blocked = np.zeros(1000, dtype=np.uint8)
+    blocked[(5 * 10 + 5) * 10 + 5] = 1  # the cell (5, 5, 5) of 1 cm cells from the origin
+    starts = np.array([[0.005, 0.055, 0.055], [0.005, 0.015, 0.055], [0.055, 0.055, 0.055]])
+    ends = np.array([[0.095, 0.055, 0.055], [0.095, 0.015, 0.055], [0.055, 0.055, 0.055]])
+    out = segments_blocked(starts, ends, np.zeros(3), 0.01, shape, blocked)
+    assert out.tolist() == [True, False, False]  # through it; beside it; a point (no segment)

@@ -1,4 +1,7 @@
-"""Kinematics (Pinocchio) against pybullet, and camera IK round trips."""
+"""Kinematics (Pinocchio) against pybullet, and camera IK round trips.
+
+Tests of: planners.motion.kinematics, planners.motion.chain_kernel, planners.motion.ik_batch, configs.chain.
+"""
 
 from __future__ import annotations
 

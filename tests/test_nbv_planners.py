@@ -1,5 +1,8 @@
 """The probabilistic planners on a synthetic scan whose answer is known: a painted stripe on a table,
-seen by one view whose edge cuts the stripe."""
+seen by one view whose edge cuts the stripe.
+
+Tests of: planners.gnbv, planners.cnbv, planners.global_nbv.
+"""
 
 import numpy as np
 import pytest

@@ -221,3 +221,21 @@ def test_joint_edge_views_end_when_the_last_one_found_less_than_it_was_counted_o
     elsewhere = np.eye(4)
     elsewhere[:3, 3] = [0.0, 0.6, 0.9]
     assert views.plan_joint(after(state.grid, elsewhere), None) is not None and views.edge_yield.per_point is None
+
+
+def test_a_disc_is_centred_inside_a_surface_and_shifted_at_its_border():
+    """planners.discs: inside a sampled plane the neighbours' centroid is the point; at the plane's
+    edge it moves 4r/(3 pi) inward, in the tangent plane, and the normal is the plane's."""
+    from scipy.spatial import cKDTree
+
+    from planners.discs import discs
+
+    g = np.arange(-0.05, 0.0500001, 0.001)
+    X, Y = np.meshgrid(g, g)
+    plane = np.c_[X.ravel(), Y.ravel(), np.zeros(X.size)]
+    r = 0.01
+    d = discs(np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]]), cKDTree(plane), r, 1000)
+    assert np.allclose(np.abs(d.normals[:, 2]), 1.0, atol=1e-6)
+    assert np.linalg.norm(d.shift[0]) < 0.02 * r  # grid rounding at the disc's rim
+    assert d.shift[1][0] == pytest.approx(-4 * r / (3 * np.pi), rel=0.1) and abs(d.shift[1][2]) < 1e-9
+    assert d.count[0] > 1.8 * d.count[1]

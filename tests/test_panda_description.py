@@ -31,3 +31,27 @@ def test_driver_twin_and_planners_read_the_one_description():
             panda.PANDA_URDF, panda.JOINT_NAMES, panda.BASE_LINK, panda.FLANGE_LINK)
     assert limits.PANDA_JOINT_NAMES is panda.JOINT_NAMES and limits.PANDA_Q_MIN is panda.PANDA_Q_MIN
     assert twin.MAX_VELOCITY is panda.PANDA_MAX_VELOCITY and twin.MAX_TORQUE is panda.PANDA_MAX_TORQUE
+
+
+def test_driver_and_planners_move_the_arm_with_the_one_batched_fk():
+    """configs/chain.py is the one batched forward kinematics: the Franka driver's safety checks and the
+    planners' kinematics both use it, and it agrees with Pinocchio's own FK row by row."""
+    import pytest
+    from arm_contract import franky_config
+
+    from configs.chain import Chain
+    from drivers.panda import SafetyChecker
+    from planners.motion.kinematics import Kinematics
+
+    kin = Kinematics(panda.PANDA_URDF, panda.JOINT_NAMES, panda.FLANGE_LINK, np.eye(4))
+    checker = SafetyChecker(franky_config("127.0.0.1"))
+    assert isinstance(checker.kin, Chain) and all(isinstance(c, Chain) for c in kin._kernels.values())
+    rng = np.random.default_rng(0)
+    Q = rng.uniform(panda.PANDA_Q_MIN, panda.PANDA_Q_MAX, size=(64, 7))
+    pinocchio_rows = np.stack([kin.fk(q, "flange") for q in Q])
+    assert np.allclose(checker.flange_poses(Q), pinocchio_rows, atol=1e-9)
+    assert np.allclose(kin.fk_batch(Q, "flange"), pinocchio_rows, atol=1e-9)
+    with pytest.raises(ValueError, match="not in"):
+        Chain.from_urdf(panda.PANDA_URDF, ("panda_joint1", "no_such_joint"), panda.FLANGE_LINK)
+    with pytest.raises(ValueError, match="frame 'no_such_link' not in"):
+        Chain.from_urdf(panda.PANDA_URDF, panda.JOINT_NAMES, "no_such_link")

@@ -2,7 +2,10 @@
 velocity, acceleration, jerk) both as pure numpy and through the adapter against franky-sim (the
 simulated joints do not move and no motion command reaches the simulated robot), fail-fast
 connection without a robot, and the franky specifics: speed scaling, collision thresholds on the
-wire, kinematics agreement, model mismatch, recovery after a controller-side abort."""
+wire, kinematics agreement, model mismatch, recovery after a controller-side abort.
+
+Tests of: drivers.panda.arm, drivers.panda.safety, drivers.panda.config.
+"""
 
 from __future__ import annotations
 

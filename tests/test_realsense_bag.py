@@ -1,7 +1,10 @@
 """The D435 adapter (drivers/realsense) without a camera: .bag fixtures written at test time from twin
 frames in librealsense's rosbag layout (pure-Python rosbags), played back through our RGBDCamera
 adapter, which reads the bag in its own order (never on a clock) and aligns depth to colour. No
-mocks: where no camera exists (here) the live sensor must say so quickly."""
+mocks: where no camera exists (here) the live sensor must say so quickly.
+
+Tests of: drivers.realsense.sensor, drivers.realsense.bag, drivers.realsense.frames, drivers.realsense.config.
+"""
 
 from __future__ import annotations
 

@@ -9,6 +9,7 @@ cellctl.service nor cellctl.bench; and nothing in cellctl/ outside bench/ import
 cellctl/cli.py. Every import counts: absolute or relative, at the top of a module or inside a function."""
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -115,3 +116,23 @@ def test_imports_are_found_relative_and_inside_functions(tmp_path):
     assert {"cellctl.scan.devices", "cellctl.service.api", "cellctl.service.api.Keys", "cellctl.bench",
             "zenoh"} <= found
     assert _is_within("cellctl.bench.scans", "cellctl.bench") and not _is_within("cellctl.benchmarks", "cellctl.bench")
+
+
+def test_every_module_names_the_tests_that_test_it():
+    """A newcomer finds the tests of a module with ``grep -l <dotted.module> tests/``: every module of the
+    project is imported, or named in a docstring, by at least one test file (tests/README.md tells the way)."""
+    tests = sorted((ROOT / "tests").glob("*.py"))
+    text = "\n".join(p.read_text() for p in tests)
+    imported = {m for p in tests for _, m in _imports(p, "tests")}
+    unnamed = []
+    for room in ("cellctl", "planners", "drivers", "sim", "configs"):
+        for path in sorted((ROOT / room).rglob("*.py")):
+            dotted = ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+            if path.name != "__init__.py" and dotted not in imported and dotted not in text:
+                unnamed.append(dotted)
+    assert not unnamed, f"no test file imports or names {unnamed}"
+    listed = re.findall(r"\b(?:cellctl|planners|drivers|sim|configs)(?:\.\w+)+", " ".join(
+        re.findall(r"Tests of: ([^\n]+(?:\n[^\n]+)*?)\.\n", text)))
+    stale = [m for m in listed if not (ROOT / (m.replace(".", "/") + ".py")).is_file()
+             and not (ROOT / m.replace(".", "/") / "__init__.py").is_file()]
+    assert not stale, f"'Tests of:' names modules that do not exist: {stale}"

@@ -1,5 +1,8 @@
 """End-to-end scans in the pybullet twin, sensor noise on: camera -> clouds -> grid -> G-NBV -> IK ->
-trajectory -> twin, and the run folder a user gets."""
+trajectory -> twin, and the run folder a user gets.
+
+Tests of: cellctl.scan.run, cellctl.scan.job, cellctl.scan.cut, cellctl.scan.result, cellctl.scan.artifacts, cellctl.scan.plots, cellctl.scan.recording.
+"""
 
 import json
 import subprocess
@@ -104,16 +107,16 @@ def test_scan_ends_with_a_cutting_path_the_twin_can_follow(cell, tmp_path):
     from planners.cutpath import CutPath
 
     result, run_dir = _scan(cell, "branched_cylinder", tmp_path, dry_run_cut=True)
-    assert result.error is None and result.cut is not None and result.cut["error"] is None
+    assert result.error is None and result.cut is not None and result.cut.error is None
     c = result.cut
     # the two painted lines cross: each is one cut straight through the crossing; the arm cannot reach
     # the drawing's far ends: those stretches are gaps with their reason, the rest is cut
-    assert c["feasible_branches"] >= 2 and c["cut_fraction"] >= 0.65, c
-    assert 0.7 < c["drawing_length_m"] < 1.3  # the two painted lines are about 0.5 m each
-    assert all(g["reason"] in ("out of reach", "joint limits", "collision", "singular", "reconfigure")
-               for g in c["gaps"]), c["gaps"]
-    a = c["accuracy"]
-    assert a["strokes"] == 2 and a["cut_coverage"] >= 0.6 and a["path_to_line_mean_mm"] <= 2.5, a
+    assert c.feasible_branches >= 2 and c.cut_fraction >= 0.65, c
+    assert 0.7 < c.drawing_length_m < 1.3  # the two painted lines are about 0.5 m each
+    assert all(g.reason in ("out of reach", "joint limits", "collision", "singular", "reconfigure")
+               for g in c.gaps), c.gaps
+    a = c.accuracy
+    assert a.strokes == 2 and a.cut_coverage >= 0.6 and a.path_to_line_mean_mm <= 2.5, a
     path = CutPath.read(run_dir)
     ends = load_scene("branched_cylinder").extremities
     gap = np.linalg.norm(path.endpoints[None, :, :] - ends[:, None, :], axis=2).min(axis=1)
@@ -125,12 +128,12 @@ def test_scan_ends_with_a_cutting_path_the_twin_can_follow(cell, tmp_path):
         assert np.all(tilt <= 20.0 + 0.5), tilt.max()  # within the torch's tolerance cone
     with open(run_dir / "cut_path.csv") as f:
         rows = list(csv.DictReader(f))
-    assert len(rows) == c["poses"]
+    assert len(rows) == c.poses
     traj = np.load(run_dir / "cut_trajectory.npz")
     assert any(k.endswith("_cut_q") for k in traj.files)
-    d = c["dry_run"]
-    assert d["motions"] == 3 * c["feasible_branches"] and d["contacts"] == []
-    assert d["tip_error_max_mm"] < 2.0 and d["path_error_max_mm"] < 2.0
+    d = c.dry_run
+    assert d.motions == 3 * c.feasible_branches and d.contacts == 0 and d.contact_log == []
+    assert d.tip_error_max_mm < 2.0 and d.path_error_max_mm < 2.0
 
 
 def test_user_yaml_scene_with_obj_mesh_scans(cell, tmp_path):

@@ -1,4 +1,7 @@
-"""Scenes: catalog geometry, ground truth, reachability, initial views, user YAML files."""
+"""Scenes: catalog geometry, ground truth, reachability, initial views, user YAML files.
+
+Tests of: sim.scenes.catalog, sim.scenes.model, sim.scenes.scene_file, configs.loading.
+"""
 
 from __future__ import annotations
 

@@ -1,6 +1,9 @@
 """The cell service end to end over real Zenoh on loopback: `cellctl serve` as a subprocess (free port,
 multicast scouting off, temp data dir), the CellClient, and short scans in the twin (smooth_cylinder,
-2 views, no noise). Nothing is mocked."""
+2 views, no noise). Nothing is mocked.
+
+Tests of: cellctl.service.server, cellctl.service.client, cellctl.service.worker, cellctl.bench.latency (the status round trip under a scan).
+"""
 
 from __future__ import annotations
 

@@ -21,7 +21,7 @@ from typing import TextIO
 from cellctl.bench.machine import code_info, machine_info
 from cellctl.config import CellConfig
 from cellctl.scan.artifacts import write_json
-from cellctl.scan.job import ScanResult
+from cellctl.scan.result import CutSummary, ScanResult
 from planners.registry import PLANNERS, planner_class
 
 SCHEMA_VERSION = 1
@@ -65,24 +65,24 @@ def run_record(scene: str, category: int | None, planner: str, seed: int, result
                run_dir: str | None, wall_s: float, peak_memory_mb: float | None) -> dict:
     """One row of bench.json. `views` counts every captured view (the initial one included);
     `viewpoints` is the paper's n_viewpoints (§VI-C.1), which excludes the initial view; `step_s` is
-    eq. 11 with that divisor."""
-    views = int(result.steps)
+    eq. 11 with that divisor. A view of ``result``: the same figures, the cut in brief."""
+    views = result.steps
     viewpoints = max(views - 1, 0)
     return {
         "scene": scene, "category": category, "planner": planner, "seed": seed,
         "views": views,
         "viewpoints": viewpoints,
-        "planning_s": round(float(result.planning_s), 4),
-        "step_s": round(float(result.planning_s) / viewpoints, 4) if viewpoints else None,
-        "capture_s": round(float(result.capture_s), 4),
-        "motion_s": round(float(result.motion_s), 4),
-        "motion_planning_s": round(float(result.motion_planning_s), 4),
-        "displacement_m": round(float(result.displacement_m), 5),
-        "coverage": {"hit": int(result.coverage_hit), "total": int(result.coverage_total),
-                     "percent": float(result.coverage_percent)},
+        "planning_s": round(result.planning_s, 4),
+        "step_s": round(result.planning_s / viewpoints, 4) if viewpoints else None,
+        "capture_s": round(result.capture_s, 4),
+        "motion_s": round(result.motion_s, 4),
+        "motion_planning_s": round(result.motion_planning_s, 4),
+        "displacement_m": round(result.displacement_m, 5),
+        "coverage": {"hit": result.coverage_hit, "total": result.coverage_total,
+                     "percent": result.coverage_percent},
         "terminated_by": result.terminated_by,
-        "motion_contacts": int(result.motion_contacts),  # the twin's own check of every move
-        "cut_feasible_poses": None if not result.cut else [result.cut["feasible_poses"], result.cut["poses"]],
+        "motion_contacts": result.motion_contacts,  # the twin's own check of every move
+        "cut_feasible_poses": None if not result.cut else [result.cut.feasible_poses, result.cut.poses],
         "cut": cut_record(result.cut),
         # after each captured view (the initial one first): drawing coverage and planning time so far,
         # so planners can be compared at equal coverage, not only at their own stop
@@ -96,21 +96,21 @@ def run_record(scene: str, category: int | None, planner: str, seed: int, result
     }
 
 
-def cut_record(cut: dict | None) -> dict | None:
+def cut_record(cut: CutSummary | None) -> dict | None:
     """What the bench keeps of a scan's cut: how much of the drawing is cut, against the true line,
     the gaps by reason, planning time and (with a dry run) the twin's own check of the motion."""
     if not cut:
         return None
     gaps: dict[str, float] = {}
-    for g in cut.get("gaps", []):
-        if g["length_m"] > 0:
-            gaps[g["reason"]] = round(gaps.get(g["reason"], 0.0) + g["length_m"], 4)
-    dry = cut.get("dry_run") or {}
-    return {"fraction": cut.get("cut_fraction"), "cuts": cut.get("feasible_branches"),
-            "planning_s": round(float(cut.get("planning_s", 0.0)), 3), "uncut_m_by_reason": gaps,
-            "accuracy": cut.get("accuracy"), "error": cut.get("error"), "clearing_views": cut.get("clearing_views", 0),
-            "dry_run_contacts": None if not dry else len(dry.get("contacts", [])),
-            "dry_run_tip_error_max_mm": dry.get("tip_error_max_mm")}
+    for g in cut.gaps:
+        if g.length_m > 0:
+            gaps[g.reason] = round(gaps.get(g.reason, 0.0) + g.length_m, 4)
+    dry = cut.dry_run
+    return {"fraction": cut.cut_fraction, "cuts": cut.feasible_branches,
+            "planning_s": round(cut.planning_s, 3), "uncut_m_by_reason": gaps,
+            "accuracy": cut.accuracy and cut.accuracy.model_dump(), "error": cut.error,
+            "clearing_views": cut.clearing_views,
+            "dry_run_contacts": dry and dry.contacts, "dry_run_tip_error_max_mm": dry and dry.tip_error_max_mm}
 
 
 class Progress:
@@ -221,7 +221,8 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
             bar.start(label)
             if import_errors[planner]:
                 rec = run_record(scene, categories[scene], planner, seed,
-                                 ScanResult(scene, planner, error=import_errors[planner], terminated_by="error"),
+                                 ScanResult(scene=scene, planner=planner, error=import_errors[planner],
+                                            terminated_by="error"),
                                  None, 0.0, None)
             else:
                 rec = _one_run(cfg, cfg_path, scene, categories[scene], planner, seed, out, memory, run_scan_in_twin,
@@ -255,7 +256,7 @@ def _one_run(cfg, cfg_path, scene, category, planner, seed, out: Path, memory: b
     except Exception as e:  # noqa: BLE001 - the bench records it and goes on
         import traceback
 
-        result = ScanResult(scene, planner, terminated_by="error",
+        result = ScanResult(scene=scene, planner=planner, terminated_by="error",
                             error=f"{type(e).__name__}: {e}\n" + traceback.format_exc(limit=6))
         new = sorted(_subdirs(runs_root) - before)
         run_dir = new[-1] if new else None

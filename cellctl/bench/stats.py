@@ -1,6 +1,7 @@
-"""One summary of a sample for every bench figure: n, min, median, p90, p99, max. Percentiles are
-nearest-rank (numpy's "inverted_cdf": the smallest value with at least that share of the sample at
-or below it), so every reported figure is a value that was measured."""
+"""One summary of a sample for every bench figure: n, min, median, p90, p99, max. The tail percentiles
+are nearest-rank (numpy's "inverted_cdf": the smallest value with at least that share of the sample at
+or below it), so each is a value that was measured; the median is the usual one (the mean of the
+middle two of an even sample)."""
 
 from __future__ import annotations
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cellctl.config import CellConfig
+from cellctl.scan.modes import MODES
 
 UDEV_RULES = Path("/etc/udev/rules.d/99-realsense-libusb.rules")
 # the librealsense Debian package installs its rules here instead
@@ -142,7 +143,7 @@ def check_robot(cfg: CellConfig | None, cfg_path: Path) -> Check:
     if cfg is None or cfg.arm is None:
         return Check("robot", False, f"{cfg_path} has no arm: block: the FCI host is unknown",
                      "use a real-mode config (configs/cell.real.yaml) with arm.host set")
-    if cfg.mode == "fcisim" and cfg.fcisim.simulator == "embedded":
+    if MODES[cfg.mode].starts_simulator(cfg):
         return Check("robot", True, "fcisim: the cell starts franky-sim itself; no FCI host to reach")
     from drivers.panda import probe
 

@@ -25,6 +25,7 @@ import trimesh
 import yaml
 
 from cellctl.config import CellConfig, MotionConfig
+from cellctl.scan.modes import MODES
 from configs.charuco import CharucoBoardConfig
 from configs.poses import pose_from_xyz_rpy_deg
 from drivers.interfaces import Arm, DeviceError, JointTrajectory, RGBDCamera, RGBDFrame, TrajectoryError
@@ -254,7 +255,7 @@ def cli_hand_eye(args) -> int:
     if args.poses < MIN_VIEWS:
         raise ValueError(f"--poses {args.poses}: hand-eye needs at least {MIN_VIEWS} views (12 or more recommended)")
     cfg, cfg_path = load_cell_config(args.config)
-    if cfg.mode != "sim":  # a twin calibration written for a real arm would be a wrong extrinsic
+    if not MODES[cfg.mode].twin_arm:  # a twin calibration written for a real arm would be a wrong extrinsic
         raise ValueError(f"calibrate hand-eye runs in the twin only so far (mode sim); {cfg_path} has mode "
                          f"{cfg.mode}, whose arm and camera are not wired to it yet")
     out = Path(args.out) if args.out else cfg_path.parent / "hand_eye.yaml"

@@ -4,11 +4,10 @@ against what was scanned, and (on request) run in the twin to see how well the t
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
-
 import numpy as np
 from scipy.spatial import cKDTree
 
+from cellctl.scan.result import CutSummary, DryRun, GapRecord
 from drivers.interfaces import Arm, ArmAbilities, JointTrajectory
 from planners.clouds import Cloud
 from planners.config import CutPathConfig
@@ -17,25 +16,6 @@ from planners.grid import OccupancyGrid
 from planners.motion.collision import CollisionChecker, CollisionConfig, RobotCollisionModel, TorchShape
 from planners.motion.kinematics import Kinematics
 from sim.config import TwinToolConfig
-
-
-@dataclass
-class CutSummary:
-    branches: int = 0
-    feasible_branches: int = 0
-    poses: int = 0
-    feasible_poses: int = 0
-    length_m: float = 0.0
-    planning_s: float = 0.0
-    infeasible: dict[str, int] = field(default_factory=dict)  # pose count per reason
-    issues: list[str] = field(default_factory=list)
-    cut_fraction: float = 0.0  # share of the drawing's length that the feasible runs cut
-    drawing_length_m: float = 0.0
-    gaps: list[dict] = field(default_factory=list)  # uncut stretches: branch, start, end, length_m, reason, detail
-    error: str | None = None
-    dry_run: dict | None = None  # filled by dry_run_cut
-    accuracy: dict | None = None  # against the true line, in the twin (planners.metrics.cut_accuracy)
-    clearing_views: int = 0  # views taken after the scan to see the space the torch needs
 
 
 def twin_torch(cut: CutPathConfig) -> TwinToolConfig:
@@ -90,13 +70,13 @@ def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: Occupanc
     summary.feasible_poses = sum(f == "ok" for f in reasons)
     summary.infeasible = {r: reasons.count(r) for r in sorted(set(reasons)) if r != "ok"}
     summary.length_m = round(float(path.length_m), 4)
-    summary.issues = list(path.notes) + [f"cut {i}: {msg}" for i, b in enumerate(path.branches) for msg in b.issues]
+    summary.warnings = list(path.notes) + [f"cut {i}: {msg}" for i, b in enumerate(path.branches) for msg in b.issues]
     summary.cut_fraction = round(float(path.cut_fraction), 4)
     summary.drawing_length_m = round(float(path.drawing_length_m or 0.0), 4)
-    summary.gaps = [g.to_json_dict() for g in path.gaps]
+    summary.gaps = [GapRecord.model_validate(g.to_json_dict()) for g in path.gaps]
     if not path.branches:
-        summary.issues.append("nothing on the drawing can be cut: " + (
-            "; ".join(sorted({f"{g['reason']}: {g['detail']}" for g in summary.gaps})) or "no drawing branch"))
+        summary.warnings.append("nothing on the drawing can be cut: " + (
+            "; ".join(sorted({f"{g.reason}: {g.detail}" for g in summary.gaps})) or "no drawing branch"))
     return path, summary, kin
 
 
@@ -123,7 +103,7 @@ def write_trajectory(path: CutPath, file) -> None:
     np.savez_compressed(file, **arrays)
 
 
-def dry_run_cut(arm: Arm, kin: Kinematics, path: CutPath, abilities: ArmAbilities | None = None) -> dict:
+def dry_run_cut(arm: Arm, kin: Kinematics, path: CutPath, abilities: ArmAbilities | None = None) -> DryRun:
     """Run every feasible branch (approach, cut, retract) on the arm, torch off, and measure the
     torch tip against the plan: at the same instant, and as distance from the planned path. The
     contacts come from a ``ContactLog`` arm, the tip's tracking from a ``MotionLog`` arm (``abilities``:
@@ -157,12 +137,9 @@ def dry_run_cut(arm: Arm, kin: Kinematics, path: CutPath, abilities: ArmAbilitie
             d, _ = cKDTree(dense).query(tip_act)
             errors_path.append(d)
             planned_tip.append(dense)
-    if not errors_t:
-        return {"motions": moved, "contacts": contacts, "tip_error_max_mm": None, "tip_error_median_mm": None,
-                "path_error_max_mm": None}
-    e_t, e_p = np.concatenate(errors_t), np.concatenate(errors_path)
-    return {"motions": moved, "contacts": contacts,
-            "tip_error_max_mm": round(1e3 * float(e_t.max()), 3),
-            "tip_error_median_mm": round(1e3 * float(np.median(e_t)), 3),
-            "path_error_max_mm": round(1e3 * float(e_p.max()), 3),
-            "path_error_median_mm": round(1e3 * float(np.median(e_p)), 3)}
+    run = DryRun(motions=moved, contacts=len(contacts), contact_log=contacts)
+    if errors_t:
+        e_t, e_p = np.concatenate(errors_t), np.concatenate(errors_path)
+        run.tip_error_max_mm, run.tip_error_median_mm = round(1e3 * e_t.max(), 3), round(1e3 * np.median(e_t), 3)
+        run.path_error_max_mm, run.path_error_median_mm = round(1e3 * e_p.max(), 3), round(1e3 * np.median(e_p), 3)
+    return run

@@ -1,34 +1,25 @@
-"""Per cell mode, the arm and the camera a scan job drives (behind ``drivers.interfaces.Arm`` /
-``RGBDCamera``), opened and closed in one place, and whether they are ready.
-
-- sim: the pybullet twin's arm and camera (the twin moves and sees).
-- fcisim: the franky adapter (``drivers.panda.FrankaArm``) connected to franky-sim (a MuJoCo FR3 behind
-  libfranka's protocol; embedded = a child process this module starts, or one already running at
-  ``arm.host``), and the twin's renderer, whose pybullet robot is set to the franky arm's *measured* joints
-  before every capture: the picture, the robot in it (which the scan's self-filter removes) and the scene
-  geometry are where the arm really is. After every motion the twin also replays the measured joints
-  against the scene and reports contacts, as it does for its own motions. The scene (objects, ground
-  truth, initial view candidates) is the twin's.
-- real: FrankaArm + the live D435 (``drivers.realsense``); the scene file gives the initial view
-  candidates and the expected drawing.
-"""
+"""The arm and the camera a scan job drives (behind ``drivers.interfaces.Arm`` / ``RGBDCamera``), opened
+as the cell's mode says (cellctl.scan.modes: sim, fcisim, real), and whether they are ready; the
+wrappers fcisim drives through: the twin's camera posed from the franky arm's *measured* joints (the
+picture, the robot in it, which the scan's self-filter removes, and the scene are where the arm really
+is), and the twin's contact check of every motion the arm made."""
 
 from __future__ import annotations
 
 import sys
 import threading
-from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from importlib.util import find_spec
 from pathlib import Path
-from typing import Iterator
+from typing import ContextManager
 
 import numpy as np
 
 from cellctl.config import CellConfig
+from cellctl.scan.modes import MODES
 from drivers.interfaces import (Arm, ArmWrapper, ContactLog, DeviceError, JointTrajectory, MotionCounter, MotionLog,
                                 RGBDCamera, RGBDFrame)
-from sim.config import HandEyeConfig, TwinConfig
+from sim.config import TwinConfig
 from sim.scenes.model import Scene
 
 MIRROR_STEP_RAD = 0.01  # replaying a measured motion in the twin: joint step between contact checks
@@ -47,69 +38,13 @@ class Devices:
     description: str
 
 
-def describe(cfg: CellConfig, arm_host: str | None = None) -> str:
-    """One line for the status (at most 200 characters): what drives the arm and the camera."""
-    if cfg.mode == "sim":
-        return "pybullet twin (arm and D435), built per job"
-    arm = cfg.arm
-    host = arm_host or arm.host
-    if cfg.mode == "fcisim":
-        where = "embedded" if cfg.fcisim.simulator == "embedded" else "external"
-        return f"franky {arm.model} on franky-sim ({where}, {host}); camera: twin renderer posed from the arm"[:200]
-    cam = cfg.camera
-    return (f"franky {arm.model} at {host}; RealSense D435 {cam.serial or '(first found)'} "
-            f"{cam.color_width}x{cam.color_height}@{cam.fps}")[:200]
-
-
-def twin_config_for(cfg: CellConfig, twin_cfg: TwinConfig) -> TwinConfig:
-    """fcisim renders with the arm's hand-eye: the camera_pose() the scan plans with (the arm's FK +
-    arm.hand_eye) and the pose the twin renders from must be one."""
-    if cfg.mode == "fcisim":
-        return twin_cfg.model_copy(update={"hand_eye": HandEyeConfig(**cfg.arm.hand_eye.model_dump())})
-    return twin_cfg
-
-
-@contextmanager
 def open_devices(cfg: CellConfig, scene: Scene, twin_cfg: TwinConfig, *, run_dir: Path | None = None,
-                 arm_host: str | None = None) -> Iterator[Devices]:
-    """The cell's arm and camera for one job, closed on the way out (also on errors). ``arm_host``:
-    fcisim, a franky-sim already running there (the service's own) instead of the config's choice.
-    ``run_dir``: real, where a camera with ``keep_view_bags`` records ``views.bag``. DeviceError with
-    the adapter's explanation when a device cannot be opened."""
-    if cfg.mode == "sim":
-        from sim.twin import Twin
-
-        with Twin(scene, twin_cfg) as twin:
-            twin.arm.reset(twin_cfg.home_q)
-            yield Devices("sim", twin.arm, twin.camera, twin.scene, twin, describe(cfg))
-        return
-    from drivers.panda import FrankaArm
-
-    with ExitStack() as stack:
-        if cfg.mode == "fcisim":
-            from sim.twin import Twin
-
-            host = arm_host
-            if host is None and cfg.fcisim.simulator == "embedded":
-                from cellctl.scan.fcisim import FrankySim
-
-                host = stack.enter_context(FrankySim(cfg.arm.host, twin_cfg.home_q, cfg.fcisim.start_timeout_s)).host
-            arm_cfg = cfg.arm.model_copy(update={"host": host or cfg.arm.host})
-            twin = stack.enter_context(Twin(scene, twin_config_for(cfg, twin_cfg)))
-            franky = stack.enter_context(FrankaArm(arm_cfg))
-            arm = TwinCheckedArm(franky, twin.arm)
-            camera = MirroredCamera(twin.camera, twin.arm, franky)
-            camera.sync()
-            yield Devices("fcisim", arm, camera, twin.scene, twin, describe(cfg, arm_cfg.host))
-            return
-        from drivers.realsense import open_camera
-
-        franky = stack.enter_context(FrankaArm(cfg.arm))
-        rec = {}
-        if cfg.camera.keep_view_bags and run_dir is not None:
-            rec = {"record_to": Path(run_dir) / "views.bag", "record": "views"}
-        camera = stack.enter_context(open_camera(cfg.camera, **rec))
-        yield Devices("real", franky, camera, scene, None, describe(cfg))
+                 arm_host: str | None = None) -> ContextManager[Devices]:
+    """The cell's arm and camera for one job, closed on the way out (also on errors), as its mode opens
+    them (cellctl.scan.modes). ``arm_host``: fcisim, a franky-sim already running there (the service's
+    own) instead of the config's choice. ``run_dir``: real, where a camera with ``keep_view_bags``
+    records ``views.bag``. DeviceError with the adapter's explanation when a device cannot be opened."""
+    return MODES[cfg.mode].open(cfg, scene, twin_cfg, run_dir=run_dir, arm_host=arm_host)
 
 
 class MirroredCamera(RGBDCamera):
@@ -225,22 +160,7 @@ def check_readiness(cfg: CellConfig, arm_host: str | None = None) -> Readiness:
     connects once) and the twin can render. real: the Franka answers and the configured D435 is
     connected with its modes (``drivers.realsense.check_devices``). Takes up to ``arm.connect_timeout_s``
     twice (TCP connect, then the handshake) for an unreachable robot."""
-    twin_ok = module_available("pybullet")
-    twin_msg = "pybullet twin" if twin_ok else "pybullet is not installed (pip install -e .)"
-    if cfg.mode == "sim":
-        return Readiness(twin_ok, twin_ok, twin_msg, twin_msg)
-    from drivers.panda import probe
-
-    arm_cfg = cfg.arm.model_copy(update={"host": arm_host}) if arm_host else cfg.arm
-    try:
-        st = probe(arm_cfg)
-        arm_ok, arm_msg = st.ready, st.message
-    except Exception as e:  # noqa: BLE001 - probe() reports DeviceErrors; anything else is still "not ready"
-        arm_ok, arm_msg = False, f"probing the arm failed: {type(e).__name__}: {e}"
-    if cfg.mode == "fcisim":
-        return Readiness(arm_ok, twin_ok, arm_msg, "twin renderer posed from the arm" if twin_ok else twin_msg)
-    cam_ok, cam_msg = camera_readiness(cfg.camera)
-    return Readiness(arm_ok, cam_ok, arm_msg, cam_msg)
+    return MODES[cfg.mode].readiness(cfg, arm_host)
 
 
 def camera_readiness(camera_cfg) -> tuple[bool, str]:

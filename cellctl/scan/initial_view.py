@@ -16,7 +16,7 @@ from typing import Callable
 
 from cellctl.config import CellConfig
 from cellctl.scan.artifacts import write_ply
-from cellctl.scan.job import ScanResult, StepRecord
+from cellctl.scan.result import ScanResult, StepRecord
 from cellctl.scan.run import prepare, write_result
 from planners import clouds
 from planners.metrics import coverage
@@ -53,8 +53,8 @@ def run_initial_view(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
         drawing = surface.select(paint)
         cov = coverage(drawing.xyz, scene.gt_points, pcfg.coverage_voxel_m)
         t2 = time.perf_counter()
-        rec = StepRecord(0, T[:3, 3].round(4).tolist(), len(surface), len(drawing), 0, 0, None, None,
-                         planning_s=t2 - t1, capture_s=t1 - t0, process_s=t2 - t1,
+        rec = StepRecord(step=0, camera_position=T[:3, 3].round(4).tolist(), points=len(surface),
+                         drawing_points=len(drawing), planning_s=t2 - t1, capture_s=t1 - t0, process_s=t2 - t1,
                          coverage_percent=round(cov.percent, 2))
         result.records.append(rec)
         result.viewpoints.append(rec.camera_position)

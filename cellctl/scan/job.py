@@ -12,13 +12,13 @@ from __future__ import annotations
 import threading
 import time
 import traceback
-from dataclasses import asdict, dataclass, field
 from typing import Callable, TypeVar
 
 import numpy as np
 
 from cellctl.config import MotionConfig
 from cellctl.scan.cut import torch_shape
+from cellctl.scan.result import ScanResult, StepRecord
 from drivers.interfaces import (Arm, ArmAbilities, DeviceError, JointTrajectory, RGBDCamera, RGBDFrame,
                                 TrajectoryError)
 from planners import clouds, raycast
@@ -51,63 +51,6 @@ class ScanError(RuntimeError):
     def __init__(self, message: str, terminated_by: str = "error"):
         super().__init__(message)
         self.terminated_by = terminated_by
-
-
-@dataclass
-class StepRecord:
-    step: int
-    camera_position: list[float]
-    points: int
-    drawing_points: int
-    frontier_cells: int
-    candidates: int
-    best_quality: float | None
-    best_gain: float | None
-    planning_s: float  # eq. 10's share of this step: cloud processing + grid update + view planning
-    capture_s: float
-    process_s: float = 0.0  # of planning_s: clouds, colour filter, grid update
-    motion_planning_s: float = 0.0  # IK, collision checks, trajectory (not view planning)
-    motion_s: float = 0.0
-    tracking_error_rad: float = 0.0
-    chosen_rank: int | None = None
-    replans: int = 0
-    coverage_percent: float | None = None  # against ground truth, when the scene has one (twin)
-    reach_error_m: float = 0.0  # camera position reached vs planned
-    reach_error_deg: float = 0.0  # optical axis reached vs planned
-    contacts: list[dict] = field(default_factory=list)  # robot-scene contacts the twin saw on this move
-    via: str = ""  # how the move went: direct, retract, approach, retract+approach, park
-
-
-@dataclass
-class ScanResult:
-    scene: str
-    planner: str
-    steps: int = 0
-    planning_s: float = 0.0
-    step_s: float = 0.0  # eq. 11: planning time per viewpoint (the initial view is not one)
-    capture_s: float = 0.0
-    motion_planning_s: float = 0.0
-    motion_s: float = 0.0
-    displacement_m: float = 0.0
-    coverage_hit: int = 0
-    coverage_total: int = 0
-    coverage_percent: float = 0.0
-    terminated_by: str = ""
-    motion_contacts: int = 0  # robot-scene contacts the twin reported over all moves (twin only)
-    # the arm's joint tracking error (max |commanded - measured|, rad) over every move, initial one included:
-    # the twin's position control (a few mrad) or the franky arm's controller (franky-sim lags 0.1 rad per rad/s)
-    tracking_error_max_rad: float | None = None
-    tracking_error_median_rad: float | None = None
-    cut: dict | None = None  # the cutting path's summary (cellctl.scan.cut.CutSummary), when one was planned
-    error: str | None = None
-    arm_stopped: bool | None = None  # after an error: whether the arm acknowledged stop() (None: no error)
-    incidents: list[dict] = field(default_factory=list)  # faults met on the way, recovered or not
-    arm_events: list[dict] = field(default_factory=list)  # what the arm itself logged during the job (Franka)
-    viewpoints: list[list[float]] = field(default_factory=list)
-    records: list[StepRecord] = field(default_factory=list)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 class ScanJob:
@@ -413,9 +356,10 @@ class ScanJob:
                               np.array(res.viewpoints + [T[:3, 3].tolist()]), self.reach.reachable)
             plan = self.planner.next_view(state)
             t2 = time.perf_counter()
-            rec = StepRecord(k, T[:3, 3].round(4).tolist(), len(self.surface), len(self.drawing), len(plan.frontier),
-                             len(plan.poses), _first(plan.quality), _first(plan.gain), t2 - t1, t1 - t0,
-                             process_s=t_proc)
+            rec = StepRecord(step=k, camera_position=T[:3, 3].round(4).tolist(), points=len(self.surface),
+                             drawing_points=len(self.drawing), frontier_cells=len(plan.frontier),
+                             candidates=len(plan.poses), best_quality=_first(plan.quality), best_gain=_first(plan.gain),
+                             planning_s=t2 - t1, capture_s=t1 - t0, process_s=t_proc)
             if gt_points is not None and len(gt_points):
                 rec.coverage_percent = round(coverage(self.drawing.xyz, gt_points, self.pcfg.coverage_voxel_m).percent, 2)
             res.viewpoints.append(T[:3, 3].tolist())

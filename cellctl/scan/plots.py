@@ -60,17 +60,18 @@ def coverage_figure(path: str | Path, gt: np.ndarray, recon: np.ndarray, viewpoi
     _save(fig, path, title)
 
 
-def cut_figure(path: str | Path, surface: np.ndarray, cuts: list[np.ndarray], gaps: list[dict],
+def cut_figure(path: str | Path, surface: np.ndarray, cuts: list[np.ndarray], gaps: list,
                truth: list[np.ndarray] | None = None, title: str = "") -> None:
     """The cut as planned: the scanned surface (grey), each runnable cut (green, numbered in cutting
     order, its start marked), each uncut stretch (red, with its reason and length) and, in the
-    twin, the true painted line (thin black). Three views, as the coverage figure."""
+    twin, the true painted line (thin black). Three views, as the coverage figure. ``gaps``:
+    cellctl.scan.result.GapRecord."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    shown = [c for c in cuts if len(c)] + [np.asarray(g["points"]) for g in gaps if len(g.get("points") or [])]
+    shown = [c for c in cuts if len(c)] + [np.asarray(g.points) for g in gaps if len(g.points)]
     allp = np.vstack(shown) if shown else (surface if len(surface) else np.zeros((1, 3)))
     mid = (allp.max(0) + allp.min(0)) / 2
     r = (allp.max(0) - allp.min(0)).max() / 2 + 0.03
@@ -87,10 +88,10 @@ def cut_figure(path: str | Path, surface: np.ndarray, cuts: list[np.ndarray], ga
             ax.plot(*c.T, c="tab:green", lw=2.2, label="cut" if k == 0 else None)
             ax.scatter(*c[0], c="tab:green", s=14)
             ax.text(*c[0], str(k), fontsize=7)
-        for k, g in enumerate([g for g in gaps if g["length_m"] > 0]):  # a reconfiguration leaves nothing uncut
-            pts = np.asarray(g.get("points") or [g["start"], g["end"]])
+        for k, g in enumerate([g for g in gaps if g.length_m > 0]):  # a reconfiguration leaves nothing uncut
+            pts = np.asarray(g.points or [g.start, g.end])
             ax.plot(*pts.T, c="tab:red", lw=3.0, label="not cut" if k == 0 else None)
             if i == 0:
-                ax.text(*pts[len(pts) // 2], f"{g['reason']} {1000 * g['length_m']:.0f} mm", fontsize=7, c="tab:red")
+                ax.text(*pts[len(pts) // 2], f"{g.reason} {1000 * g.length_m:.0f} mm", fontsize=7, c="tab:red")
         _frame(ax, mid, r, elev, azim, legend=i == 0)
     _save(fig, path, title)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import sys
 import threading
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -16,9 +16,10 @@ from cellctl.config import CellConfig
 from cellctl.scan.artifacts import new_run_dir, save_png, write_json, write_ply
 from cellctl.scan.cut import clearing_targets, dry_run_cut, plan_cut, twin_torch, write_trajectory
 from cellctl.scan.devices import open_devices
-from cellctl.scan.job import ScanJob, ScanResult, StepRecord
+from cellctl.scan.job import ScanJob
 from cellctl.scan.plots import coverage_figure, cut_figure
 from cellctl.scan.recording import ScanRecorder
+from cellctl.scan.result import ResultFile, ScanResult, StepRecord
 from drivers.interfaces import Arm
 from planners.config import PlannersConfig, load_planners_config
 from planners.metrics import cut_accuracy
@@ -53,7 +54,7 @@ def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, arm: Arm, run_dir: Path, rec
         if truth:
             summary.accuracy = cut_accuracy(truth[0], [b.points for b in path.branches if b.feasible],
                                             painted=truth[1])
-    result.cut = asdict(summary)
+    result.cut = summary
     if progress:
         print(f"cut path: {100 * summary.cut_fraction:.1f} % of the {summary.drawing_length_m:.3f} m drawing "
               f"will be cut, {summary.feasible_branches} cuts ({summary.branches - summary.feasible_branches} "
@@ -62,16 +63,16 @@ def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, arm: Arm, run_dir: Path, rec
               + (f" ({summary.error})" if summary.error else ""),
               file=sys.stderr, flush=True)
         for g in summary.gaps:
-            if g["length_m"] > 0:
-                print(f"  uncut {1000 * g['length_m']:.0f} mm of branch {g['branch']}: {g['reason']}: {g['detail']}",
+            if g.length_m > 0:
+                print(f"  uncut {1000 * g.length_m:.0f} mm of branch {g.branch}: {g.reason}: {g.detail}",
                       file=sys.stderr, flush=True)
-        for msg in summary.issues:
+        for msg in summary.warnings:
             print(f"  warning: {msg}", file=sys.stderr, flush=True)
         if summary.accuracy:
             a = summary.accuracy
-            print(f"  against the true line: {100 * a['cut_coverage']:.1f} % within 5 mm of a cut; path to line mean "
-                  f"{a['path_to_line_mean_mm']} mm, max {a['path_to_line_max_mm']} mm; {a['cuts']} cuts for "
-                  f"{a['strokes']} strokes", file=sys.stderr, flush=True)
+            print(f"  against the true line: {100 * a.cut_coverage:.1f} % within 5 mm of a cut; path to line mean "
+                  f"{a.path_to_line_mean_mm} mm, max {a.path_to_line_max_mm} mm; {a.cuts} cuts for "
+                  f"{a.strokes} strokes", file=sys.stderr, flush=True)
 
 
 def _cut_picture(run_dir: Path, job: ScanJob, path, summary, truth: tuple | None) -> None:
@@ -82,7 +83,7 @@ def _cut_picture(run_dir: Path, job: ScanJob, path, summary, truth: tuple | None
                    f"{100 * summary.cut_fraction:.1f} % of the {1000 * summary.drawing_length_m:.0f} mm line "
                    f"will be cut, in {len(cuts)} cuts")
     except Exception as e:  # noqa: BLE001 - reported, the cut itself is written already
-        summary.issues.append(f"could not draw cut.png: {type(e).__name__}: {e}")
+        summary.warnings.append(f"could not draw cut.png: {type(e).__name__}: {e}")
 
 
 @dataclass(frozen=True)
@@ -116,8 +117,8 @@ def prepare(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, se
 
 def write_result(run_dir: Path, cfg: CellConfig, scene_ref: str, result: ScanResult, profile: str = "scan") -> None:
     """The job's result.json: the one record of a run folder, whatever the profile."""
-    write_json(run_dir / "result.json", {"schema_version": 1, "cell_id": cfg.cell_id, "mode": cfg.mode,
-                                         "scene_ref": scene_ref, "job_profile": profile, **result.to_dict()})
+    file = ResultFile(cell_id=cfg.cell_id, mode=cfg.mode, scene_ref=scene_ref, job_profile=profile, **result.model_dump())
+    write_json(run_dir / "result.json", file.model_dump())
 
 
 def run_job(profile: str, cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, run_dir: Path,
@@ -180,7 +181,7 @@ def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
                 if cut and result.error is None and not job.cancelled() and len(job.drawing):
                     if on_phase:
                         on_phase("planning-cut")
-                    truth = (scene.drawing_polylines, scene.gt_points) if cfg.mode != "real" else None
+                    truth = (scene.drawing_polylines, scene.gt_points) if dev.twin is not None else None
                     _cut_phase(job, pcfg, cfg, dev.arm, run_dir, recorder, result, dry_run_cut, progress, truth)
         finally:  # what the scan saw is kept, also when the cut phase or the twin failed afterwards
             if job is not None:

@@ -10,8 +10,11 @@ from __future__ import annotations
 import json
 from typing import Annotated, Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, Field, ValidationError
 
+from cellctl.scan.modes import ModeName, modes_help
+from cellctl.scan.result import (CutAccuracy, CutGap, CutPathSummary, DryRunSummary,  # noqa: F401 - the API's
+                                 ResultSummary, Summary)  # result views, defined with the result they view
 from planners.registry import DEFAULT_PLANNER, PLANNERS  # names only: no planner is imported
 
 SCHEMA_VERSION = 1
@@ -83,8 +86,7 @@ class Keys:
 
 
 # --- messages -------------------------------------------------------------------------------------
-class ApiModel(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
+ApiModel = Summary  # every message: unknown fields refused, strict types, finite numbers
 
 
 class ScanDrawingRequest(ApiModel):
@@ -162,84 +164,6 @@ class Progress(ApiModel):
     at: Timestamp
 
 
-class DryRunSummary(ApiModel):
-    motions: int = Field(ge=0)
-    contacts: int = Field(ge=0, description="robot-scene contacts the twin saw")
-    tip_error_max_mm: float | None = None
-    tip_error_median_mm: float | None = None
-    path_error_max_mm: float | None = None
-    path_error_median_mm: float | None = None
-
-
-class CutGap(ApiModel):
-    """A stretch of the drawing the torch will not cut, and why."""
-
-    branch: int = Field(ge=0, description="which branch of the drawing")
-    length_m: float = Field(ge=0, description="0 for a reconfiguration: the torch lifts and lands again there")
-    reason: str = Field(max_length=64, description="out of reach, joint limits, collision, singular, reconfigure, "
-                                                   "too short")
-    detail: str = Field("", max_length=500)
-    start: list[float] = Field(min_length=3, max_length=3, description="last cut point before it, robot base, m")
-    end: list[float] = Field(min_length=3, max_length=3, description="first cut point after it, robot base, m")
-
-
-class CutAccuracy(ApiModel):
-    """The cuts against the painted line's true centerline (twin only)."""
-
-    strokes: int = Field(ge=0, description="strokes of the true drawing")
-    cuts: int = Field(ge=0)
-    line_on_metal_m: float | None = Field(None, ge=0)
-    cut_coverage: float = Field(ge=0, le=1, description="share of the true line within 5 mm of a cut")
-    path_to_line_mean_mm: float | None = Field(None, ge=0)
-    path_to_line_max_mm: float | None = Field(None, ge=0)
-    line_to_path_mean_mm: float | None = Field(None, ge=0)
-    line_to_path_max_mm: float | None = Field(None, ge=0, description="includes the uncut gaps")
-
-
-class CutPathSummary(ApiModel):
-    """What will be cut. ``branches`` are the cuts in cutting order (runs of the drawing the arm can
-    follow in one go), ``feasible_branches`` those with an approach and a retract too."""
-
-    branches: int = Field(ge=0)
-    feasible_branches: int = Field(ge=0)
-    poses: int = Field(ge=0)
-    feasible_poses: int = Field(ge=0)
-    length_m: float = Field(ge=0)
-    planning_s: float = Field(ge=0)
-    infeasible: dict[str, int] = Field(default_factory=dict, description="pose count per reason")
-    error: str | None = Field(None, max_length=2000)
-    dry_run: DryRunSummary | None = None
-    cut_fraction: float = Field(0.0, ge=0, le=1, description="share of the drawing's length the cuts cover")
-    drawing_length_m: float = Field(0.0, ge=0)
-    gaps: list[CutGap] = Field(default_factory=list, max_length=200, description="what is left uncut, and why")
-    warnings: list[str] = Field(default_factory=list, max_length=50, description="what the operator should know")
-    clearing_views: int = Field(0, ge=0, description="views taken after the scan to see the torch's way")
-    accuracy: CutAccuracy | None = None
-
-
-class ResultSummary(ApiModel):
-    """What the scan found; the full result is result.json in the job's artifacts folder."""
-
-    scene: str = Field(max_length=500)
-    planner: str = Field(max_length=32)
-    steps: int = Field(ge=0, description="views captured, initial one included")
-    terminated_by: str = Field(max_length=64, description="quality, frontier, max_steps, unreachable, cancelled, "
-                                                          "error, ...")
-    coverage_percent: float = Field(ge=0, le=100, description="of the painted line (twin: against ground truth)")
-    coverage_hit: int = Field(ge=0)
-    coverage_total: int = Field(ge=0)
-    planning_s: float = Field(ge=0)
-    step_s: float = Field(ge=0, description="planning time per viewpoint")
-    capture_s: float = Field(ge=0)
-    motion_planning_s: float = Field(ge=0)
-    motion_s: float = Field(ge=0)
-    displacement_m: float = Field(ge=0)
-    motion_contacts: int = Field(0, ge=0)
-    cut: CutPathSummary | None = Field(None, description="absent when no cut was planned (cancelled, error, "
-                                                         "no drawing)")
-    error: str | None = Field(None, max_length=2000)
-
-
 class Artifacts(ApiModel):
     dir: str = Field(max_length=1000, description="on the cell controller: <data_dir>/jobs/<job_id>")
     files: list[str] = Field(default_factory=list, max_length=100)
@@ -296,8 +220,7 @@ class CellStatus(ApiModel):
     schema_version: Literal[1] = SCHEMA_VERSION
     cell_id: CellId
     version: str = Field(max_length=64, description="scrapcell package version")
-    mode: Literal["sim", "fcisim", "real"] = Field(description="sim: the pybullet twin; fcisim: the Franka adapter "
-                                                   "on franky-sim, the twin's camera; real: the Franka and the D435")
+    mode: ModeName = Field(description=modes_help())
     arm_ready: bool
     camera_ready: bool
     ready: bool = Field(description="a submitted job can start: arm and camera answer (fcisim, real: probed at start "

@@ -26,8 +26,7 @@ from pathlib import Path
 import zenoh
 
 from cellctl.config import CellConfig, ServiceConfig
-from cellctl.scan.devices import describe as describe_devices
-from cellctl.scan.devices import module_available
+from cellctl.scan.modes import MODES
 from cellctl.service.api import (MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, ApiError, Artifacts, CancelReply, CancelRequest,
                                  CellStatus, JobEvent, JobList, Keys, ListJobsRequest, Progress, ResultSummary,
                                  ScanDrawingRequest, SubmitReply, dumps, parse_payload)
@@ -101,6 +100,7 @@ class CellService:
         from planners.config import load_planners_config
 
         self.cfg, self.cfg_path, self.scfg = cfg, Path(cfg_path), cfg.service
+        self.mode = MODES[cfg.mode]
         if self.scfg.rerun_connect:
             self.cfg = cfg.model_copy(update={"rerun_connect": self.scfg.rerun_connect})
         self.data_dir = Path(data_dir or self.scfg.data_dir).resolve()
@@ -142,7 +142,7 @@ class CellService:
     def start(self) -> None:
         """Mark what a previous process left unfinished as interrupted, open the session, declare the
         API, start the worker. On any failure the session is closed again."""
-        if self.scfg.job_profile != "scan" and self.cfg.mode != "sim":  # a load-test job on a real arm: never
+        if self.scfg.job_profile != "scan" and not self.mode.twin_arm:  # a load-test job on a real arm: never
             raise ServiceError(f"service.job_profile {self.scfg.job_profile} is for load tests in the twin; "
                                f"mode {self.cfg.mode} needs job_profile scan")
         self._lock_data_dir()
@@ -164,7 +164,7 @@ class CellService:
                 self._emit(job_id, "interrupted", "interrupted", message="the service stopped before the job ended")
             self._worker = threading.Thread(target=self._work, name="cell-worker", daemon=True)
             self._worker.start()
-            if self.cfg.mode != "sim":
+            if self.mode.probed:
                 self._watcher = threading.Thread(target=self._watch_devices, name="cell-devices", daemon=True)
                 self._watcher.start()
             with self._cv:
@@ -294,7 +294,7 @@ class CellService:
         with self._cv:
             queue_length, running, accepting = len(self._queue), self._running, self._accepting
         rd = self.readiness()
-        devices = describe_devices(self.cfg, self.arm_host)
+        devices = self.mode.describe(self.cfg, self.arm_host)
         if self.scfg.job_profile != "scan":  # a load-test cell must not pass for a scanning one
             devices += f"; job profile {self.scfg.job_profile}: one view, no motion, no cut"
         return CellStatus(cell_id=self.cfg.cell_id, version=version(), mode=self.cfg.mode, arm_ready=rd.arm_ready,
@@ -388,7 +388,7 @@ class CellService:
         """fcisim with an embedded simulator: start the cell's franky-sim (it lives as long as the service,
         like a robot, so the arm keeps its pose between jobs and can be probed). Then the first readiness
         check, before the cell answers anyone."""
-        if self.cfg.mode == "fcisim" and self.cfg.fcisim.simulator == "embedded":
+        if self.mode.starts_simulator(self.cfg):
             from cellctl.scan.fcisim import FrankySim
             from drivers.interfaces import DeviceError
 
@@ -404,19 +404,18 @@ class CellService:
 
     def readiness(self):
         rd = self._readiness
-        if rd is None:  # sim (static), or before the first check
+        if rd is None:  # a mode that is not probed (static), or before the first check
             from cellctl.scan.devices import Readiness
 
-            ok = module_available("pybullet")
-            if self.cfg.mode == "sim":
-                return Readiness(ok, ok, "pybullet twin", "pybullet twin")
+            if not self.mode.probed:
+                return self.mode.readiness(self.cfg)
             return Readiness(False, False, "not checked yet", "not checked yet")
         return rd
 
     def _refresh_readiness(self, *, blocking: bool = True) -> None:
         from cellctl.scan.devices import check_readiness
 
-        if self.cfg.mode == "sim":
+        if not self.mode.probed:
             return
         if not self._devices_lock.acquire(blocking=blocking):
             return  # a job holds the devices: its own outcome tells

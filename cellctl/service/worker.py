@@ -13,7 +13,6 @@ A worker that crashes or is killed has closed its libfranka session with the pro
 from __future__ import annotations
 
 import ctypes
-import json
 import logging
 import multiprocessing as mp
 import os
@@ -26,7 +25,7 @@ from pathlib import Path
 from typing import Callable
 
 from cellctl.config import CellConfig
-from cellctl.scan.artifacts import _default as _json_default
+from cellctl.scan.result import ResultFile
 from cellctl.service.api import ResultSummary
 
 log = logging.getLogger("cellctl.service.worker")
@@ -192,45 +191,15 @@ def _worker_main(jobs, msgs, stop, parent_pid: int) -> None:
                              seed=spec.seed, noise=spec.noise, max_steps=spec.max_steps, dry_run_cut=spec.dry_run_cut,
                              cancel=stop, on_step=on_step, on_phase=lambda p: msgs.send(("phase", p)),
                              arm_host=spec.arm_host)
-            msgs.send(("result", summary_of(result).model_dump_json(), result.error))
+            msgs.send(("result", result.summary().model_dump_json(), result.error))
         except Exception as e:  # noqa: BLE001 - a failed job: say why, keep what was written
             summary = summary_from_file(spec.run_dir / "result.json")
             msgs.send(("result", summary.model_dump_json() if summary else None, f"{type(e).__name__}: {e}"))
 
 
-_SUMMARY_FIELDS = tuple(ResultSummary.model_fields)
-
-
-def summary_of(result) -> ResultSummary:
-    """A ScanResult as the API's summary."""
-    return summary_from_dict(result.to_dict())
-
-
-def summary_from_dict(d: dict) -> ResultSummary:
-    """ScanResult dict -> ResultSummary, through JSON so numpy scalars become plain numbers."""
-    s = {k: d.get(k) for k in _SUMMARY_FIELDS if k in d}
-    if s.get("error"):
-        s["error"] = str(s["error"])[:2000]
-    cut = d.get("cut")
-    if cut:
-        s["cut"] = {k: cut.get(k) for k in ("branches", "feasible_branches", "poses", "feasible_poses", "length_m",
-                                            "planning_s", "infeasible", "error", "dry_run", "cut_fraction",
-                                            "drawing_length_m", "clearing_views", "accuracy") if cut.get(k) is not None}
-        s["cut"]["gaps"] = [{k: g[k] for k in ("branch", "length_m", "reason", "detail", "start", "end")}
-                            for g in (cut.get("gaps") or [])[:200]]
-        s["cut"]["warnings"] = [str(w)[:500] for w in (cut.get("issues") or [])[:50]]
-        if cut.get("error"):
-            s["cut"]["error"] = str(cut["error"])[:2000]
-        dr = cut.get("dry_run")
-        if dr:
-            s["cut"]["dry_run"] = {**{k: v for k, v in dr.items() if k != "contacts"},
-                                   "contacts": len(dr.get("contacts") or [])}
-    return ResultSummary.model_validate_json(json.dumps(s, default=_json_default))
-
-
 def summary_from_file(path: Path) -> ResultSummary | None:
     """The summary of a result.json a job wrote, or None when there is none (or it is unreadable)."""
     try:
-        return summary_from_dict(json.loads(path.read_text()))
+        return ResultFile.model_validate_json(path.read_text()).summary()
     except Exception:  # noqa: BLE001 - no (readable) partial result: the record says why the job failed
         return None

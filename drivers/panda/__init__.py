@@ -5,7 +5,7 @@ cellctl/ or sim/."""
 
 from drivers.panda.arm import ArmStatus, FrankaArm, preflight, probe
 from drivers.panda.config import FrankaConfig, JointLimits
-from drivers.panda.safety import ChainKinematics, SafetyChecker
+from drivers.panda.safety import SafetyChecker
 
-__all__ = ["ArmStatus", "ChainKinematics", "FrankaArm", "FrankaConfig", "JointLimits", "SafetyChecker",
+__all__ = ["ArmStatus", "FrankaArm", "FrankaConfig", "JointLimits", "SafetyChecker",
            "preflight", "probe"]

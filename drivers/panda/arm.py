@@ -39,7 +39,8 @@ import numpy as np
 from drivers.interfaces import (Arm, ArmModel, DeviceError, EventLog, JointTrajectory, MotionCounter, MotionLog,
                                 Recoverable, TrajectoryError)
 from drivers.panda.config import BASE_LINK, FCI_PORT, FLANGE_LINK, JOINT_NAMES, FrankaConfig
-from drivers.panda.safety import ChainKinematics, CheckedTrajectory, SafetyChecker, derivatives
+from configs.chain import Chain
+from drivers.panda.safety import CheckedTrajectory, SafetyChecker, derivatives
 
 log = logging.getLogger(__name__)
 
@@ -232,7 +233,7 @@ class FrankaArm(Arm, Recoverable, EventLog, MotionLog, MotionCounter):
     def __init__(self, config: FrankaConfig, *, connect: bool = True) -> None:
         self.config = config
         self.safety = SafetyChecker(config)
-        self._link8 = ChainKinematics(config.urdf_path, JOINT_NAMES, "panda_link8")
+        self._link8 = Chain.from_urdf(config.urdf_path, JOINT_NAMES, "panda_link8")
         lim = config.active_limits
         self.model = ArmModel(
             urdf_path=config.urdf_path,

@@ -1,8 +1,8 @@
 """Checks a JointTrajectory against the FrankaConfig before anything is sent to the robot.
 
-Pure numpy (plus Pinocchio to read the URDF once): joint-limit margin, velocity, acceleration and
-jerk from divided differences, and the workspace box of the flange and the camera through batched
-forward kinematics. Every refusal is a TrajectoryError that names the limit, the sample and the joint
+Pure numpy: joint-limit margin, velocity, acceleration and jerk from divided differences, and the
+workspace box of the flange and the camera through the cell's one batched forward kinematics
+(configs.chain). Every refusal is a TrajectoryError that names the limit, the sample and the joint
 (or axis), so an operator can see what the planner got wrong.
 
 Why divided differences bound the motion: the k-th divided difference of samples of a smooth path
@@ -17,59 +17,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import pinocchio as pin
 
+from configs.chain import Chain
 from drivers.interfaces import JointTrajectory, TrajectoryError
 from drivers.panda.config import FLANGE_LINK, JOINT_NAMES, FrankaConfig
 
 MAX_SAMPLES = 200_000  # ~30 min at 100 Hz: anything longer is a planner bug, not a motion
 _PAD = 3  # rest samples added at each end (enough for the third difference)
-_AXES = {"JointModelRX": 0, "JointModelRY": 1, "JointModelRZ": 2}
-
-
-class ChainKinematics:
-    """Forward kinematics of a serial chain of revolute joints up to one URDF frame, batched over
-    samples with numpy: Pinocchio only reads the URDF (joint placements, axes, frame placement), so
-    thousands of samples cost a handful of (N, 4, 4) matrix products instead of a Python loop."""
-
-    def __init__(self, urdf_path: str, joint_names: tuple[str, ...], frame: str) -> None:
-        model = pin.buildModelFromUrdf(urdf_path)
-        ids = []
-        for name in joint_names:
-            if not model.existJointName(name):
-                raise ValueError(f"joint {name!r} not in {urdf_path}")
-            ids.append(model.getJointId(name))
-        for k, jid in enumerate(ids):
-            parent = model.parents[jid]
-            if parent != (ids[k - 1] if k else 0):
-                before = joint_names[k - 1] if k else "the base"
-                raise ValueError(f"{joint_names[k]} does not follow {before} in {urdf_path}")
-            kind = model.joints[jid].shortname()
-            if kind not in _AXES:
-                raise ValueError(f"{joint_names[k]} is a {kind}; only revolute x/y/z joints are supported")
-        if not model.existFrame(frame):
-            raise ValueError(f"frame {frame!r} not in {urdf_path}")
-        f = model.frames[model.getFrameId(frame)]
-        if f.parentJoint != ids[-1]:
-            raise ValueError(f"frame {frame!r} is not attached after {joint_names[-1]}")
-        self.placements = np.stack([model.jointPlacements[j].homogeneous for j in ids])  # (7, 4, 4)
-        self.axes = np.array([_AXES[model.joints[j].shortname()] for j in ids])
-        self.frame_placement = f.placement.homogeneous
-        self.frame = frame
-
-    def poses(self, q: np.ndarray) -> np.ndarray:
-        """(N, 7) joint angles -> (N, 4, 4) T_base_frame."""
-        q = np.atleast_2d(np.asarray(q, dtype=np.float64))
-        T = np.broadcast_to(np.eye(4), (q.shape[0], 4, 4)).copy()
-        for k in range(len(self.axes)):  # over the 7 joints, vectorized over samples
-            T = T @ self.placements[k]
-            c, s = np.cos(q[:, k]), np.sin(q[:, k])
-            R = np.zeros((q.shape[0], 3, 3))
-            a, b = [(1, 2), (2, 0), (0, 1)][self.axes[k]]  # the plane the joint rotates
-            R[:, self.axes[k], self.axes[k]] = 1.0
-            R[:, a, a], R[:, a, b], R[:, b, a], R[:, b, b] = c, -s, s, c
-            T[:, :3, :3] = T[:, :3, :3] @ R
-        return T @ self.frame_placement
 
 
 def derivatives(times: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -109,7 +63,7 @@ class SafetyChecker:
             "acceleration": (np.asarray(lim.max_acceleration), slack, "rad/s^2"),
             "jerk": (np.asarray(lim.max_jerk), slack, "rad/s^3"),
         }
-        self.kin = ChainKinematics(config.urdf_path, JOINT_NAMES, FLANGE_LINK)
+        self.kin = Chain.from_urdf(config.urdf_path, JOINT_NAMES, FLANGE_LINK)
         self.T_flange_cam = config.T_flange_cam()
 
     # ------------------------------------------------------------------ public

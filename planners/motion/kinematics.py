@@ -16,6 +16,8 @@ from collections.abc import Sequence
 import numpy as np
 import pinocchio as pin
 
+from configs.chain import chain_steps
+
 from .chain_kernel import Chain
 
 CAM_FRAME_NAME = "scrapcell_camera_optical"
@@ -197,35 +199,11 @@ class Kinematics:
     # ------------------------------------------------------------------ batched
 
     def _build_chain(self) -> None:
-        """Precompute the serial chain root -> frame for the vectorized numpy FK."""
+        """The serial chain root -> frame of each frame for the compiled FK (configs.chain)."""
         model = self.model
-        self._chain_ok = True
-        chains = {}
-        for name, fid in self._frame_ids.items():
-            f = model.frames[fid]
-            joints = []
-            j = f.parentJoint
-            while j > 0:
-                joints.append(j)
-                j = model.parents[j]
-            joints.reverse()
-            steps = []
-            for j in joints:
-                jm = model.joints[j]
-                short = jm.shortname()
-                M = model.jointPlacements[j].homogeneous.copy()
-                iq = int(np.nonzero(self._idx == jm.idx_q)[0][0])
-                if short in ("JointModelRX", "JointModelRY", "JointModelRZ"):
-                    steps.append((M, "R", _AXES[short[-1]], iq))
-                elif short in ("JointModelPX", "JointModelPY", "JointModelPZ"):
-                    steps.append((M, "P", _AXES[short[-1]], iq))
-                elif short == "JointModelRevoluteUnaligned":
-                    steps.append((M, "R", np.asarray(jm.extract().axis, dtype=np.float64).copy(), iq))
-                elif short == "JointModelPrismaticUnaligned":
-                    steps.append((M, "P", np.asarray(jm.extract().axis, dtype=np.float64).copy(), iq))
-                else:
-                    self._chain_ok = False
-            chains[name] = (steps, f.placement.homogeneous.copy())
+        column = {int(q): k for k, q in enumerate(self._idx)}
+        chains = {name: chain_steps(model, fid, column) for name, fid in self._frame_ids.items()}
+        self._chain_ok = all(steps is not None for steps, _ in chains.values())
         self._chains = chains
         self._kernels = {name: Chain(steps, F, self.dof) for name, (steps, F) in chains.items()} if self._chain_ok else {}
         # every joint in tree order (parents first), for the link poses of many configurations at once
