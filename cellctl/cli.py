@@ -12,13 +12,13 @@ from planners.registry import DEFAULT_PLANNER, PLANNERS
 
 def _scan(args: argparse.Namespace) -> int:
     from cellctl.config import load_cell_config
-    from cellctl.scan.run import run_scan_in_twin
+    from cellctl.scan.run import run_scan
 
     from drivers.interfaces import DeviceError
 
     cfg, cfg_path = load_cell_config(args.config)
     try:
-        result, run_dir = run_scan_in_twin(cfg, cfg_path, args.scene, args.planner, seed=args.seed,
+        result, run_dir = run_scan(cfg, cfg_path, args.scene, args.planner, seed=args.seed,
                                            noise=not args.no_noise, out=args.out, max_steps=args.max_steps,
                                            progress=not args.quiet, cut=not args.no_cut,
                                            dry_run_cut=args.dry_run_cut)

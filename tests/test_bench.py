@@ -199,7 +199,7 @@ def test_bench_goes_on_after_failures(monkeypatch, tmp_path):
             r.error, r.terminated_by = "Unreachable: nowhere to go", "error"
         return r, run_dir
 
-    monkeypatch.setattr(cellctl.scan.run, "run_scan_in_twin", fake_scan)
+    monkeypatch.setattr(cellctl.scan.run, "run_scan", fake_scan)
     monkeypatch.setattr(sim.scenes, "load_scene", lambda name: _Scene())
     monkeypatch.setitem(PLANNERS, "cnbv", "planners.no_such_module:Nope")
     cfg, cfg_path = load_cell_config(None)

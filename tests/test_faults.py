@@ -23,7 +23,7 @@ from pydantic import ValidationError
 
 from cellctl.config import CellConfig, load_cell_config
 from cellctl.scan.job import ScanJob
-from cellctl.scan.run import run_scan_in_twin
+from cellctl.scan.run import run_scan
 from cellctl.service.loopback import ServiceProcess
 from configs import CONFIG_DIR
 from drivers.interfaces import Arm, DeviceError, JointTrajectory, RGBDCamera, TrajectoryError
@@ -47,7 +47,7 @@ def cell(faults: dict, execution: str = "teleport") -> CellConfig:
 
 def scan(tmp_path: Path, faults: dict, max_steps: int = 3):
     """The job as the service runs it (run folder and all), without the cut."""
-    return run_scan_in_twin(cell(faults), CFG_PATH, SCENE, PLANNER, noise=False, max_steps=max_steps,
+    return run_scan(cell(faults), CFG_PATH, SCENE, PLANNER, noise=False, max_steps=max_steps,
                             progress=False, cut=False, run_dir=tmp_path / "run")
 
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from cellctl.config import load_cell_config
-from cellctl.scan.run import run_scan_in_twin
+from cellctl.scan.run import run_scan
 from sim.scenes import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -26,7 +26,7 @@ def cell():
 
 def _scan(cell, scene, tmp_path, **kw):
     cfg, path = cell
-    return run_scan_in_twin(cfg, path, scene, "gnbv", out=str(tmp_path), progress=False, **kw)
+    return run_scan(cfg, path, scene, "gnbv", out=str(tmp_path), progress=False, **kw)
 
 
 @pytest.mark.parametrize("scene", ["smooth_cylinder", "round_tank"])

@@ -182,7 +182,7 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
               dry_run_cut: bool = False) -> dict:
     """Run the grid, write OUT/bench.json (after every run) and OUT/runs/seed<k>/<run folders>;
     returns the bench document. The report is written by the caller (cellctl.bench.report)."""
-    from cellctl.scan.run import run_scan_in_twin
+    from cellctl.scan.run import run_scan
     from planners.config import load_planners_config
     from sim.scenes import load_scene
 
@@ -225,7 +225,7 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
                                             terminated_by="error"),
                                  None, 0.0, None)
             else:
-                rec = _one_run(cfg, cfg_path, scene, categories[scene], planner, seed, out, memory, run_scan_in_twin,
+                rec = _one_run(cfg, cfg_path, scene, categories[scene], planner, seed, out, memory, run_scan,
                                dry_run_cut)
             doc["runs"].append(rec)
             doc["process"] = {"max_rss_mb": max_rss_mb(), "wall_s": round(time.perf_counter() - t_start, 1)}
@@ -240,7 +240,7 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
     return doc
 
 
-def _one_run(cfg, cfg_path, scene, category, planner, seed, out: Path, memory: bool, run_scan_in_twin,
+def _one_run(cfg, cfg_path, scene, category, planner, seed, out: Path, memory: bool, run_scan,
              dry_run_cut: bool = False) -> dict:
     runs_root = out / "runs" / f"seed{seed}"
     before = _subdirs(runs_root)
@@ -251,7 +251,7 @@ def _one_run(cfg, cfg_path, scene, category, planner, seed, out: Path, memory: b
     t0 = time.perf_counter()
     run_dir: Path | None
     try:
-        result, run_dir = run_scan_in_twin(cfg, cfg_path, scene, planner, seed=seed, noise=True,
+        result, run_dir = run_scan(cfg, cfg_path, scene, planner, seed=seed, noise=True,
                                            out=str(runs_root), progress=False, dry_run_cut=dry_run_cut)
     except Exception as e:  # noqa: BLE001 - the bench records it and goes on
         import traceback

@@ -126,7 +126,7 @@ def run_job(profile: str, cfg: CellConfig, cfg_path: Path, scene_ref: str, plann
             cancel: threading.Event | None = None, on_step: Callable[[StepRecord], None] | None = None,
             on_phase: Callable[[str], None] | None = None, arm_host: str | None = None) -> ScanResult:
     """A scan-drawing job by its profile (``service.job_profile``): "scan", the whole job
-    (``run_scan_in_twin``), or "initial_view", its first view only (cellctl.scan.initial_view)."""
+    (``run_scan``), or "initial_view", its first view only (cellctl.scan.initial_view)."""
     if profile == "initial_view":
         from cellctl.scan.initial_view import run_initial_view
 
@@ -134,13 +134,13 @@ def run_job(profile: str, cfg: CellConfig, cfg_path: Path, scene_ref: str, plann
                                 cancel=cancel, on_step=on_step)
     if profile != "scan":
         raise ValueError(f"unknown job profile {profile!r}; choose scan or initial_view")
-    result, _ = run_scan_in_twin(cfg, cfg_path, scene_ref, planner, seed=seed, noise=noise, max_steps=max_steps,
+    result, _ = run_scan(cfg, cfg_path, scene_ref, planner, seed=seed, noise=noise, max_steps=max_steps,
                                  progress=False, cut=True, dry_run_cut=dry_run_cut, run_dir=run_dir, cancel=cancel,
                                  on_step=on_step, on_phase=on_phase, arm_host=arm_host)
     return result
 
 
-def run_scan_in_twin(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, seed: int | None = None,
+def run_scan(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, seed: int | None = None,
                      noise: bool = True, out: str | None = None, max_steps: int | None = None,
                      progress: bool = True, cut: bool = True, dry_run_cut: bool = False,
                      run_dir: Path | None = None, cancel: threading.Event | None = None,
