@@ -12,16 +12,16 @@ from planners.registry import DEFAULT_PLANNER, PLANNERS
 
 def _scan(args: argparse.Namespace) -> int:
     from cellctl.config import load_cell_config
-    from cellctl.scan.run import run_scan
-
+    from cellctl.scan.run import run_job
+    from cellctl.scan.spec import Hooks, JobSpec
     from drivers.interfaces import DeviceError
 
     cfg, cfg_path = load_cell_config(args.config)
     try:
-        result, run_dir = run_scan(cfg, cfg_path, args.scene, args.planner, seed=args.seed,
-                                           noise=not args.no_noise, out=args.out, max_steps=args.max_steps,
-                                           progress=not args.quiet, cut=not args.no_cut,
-                                           dry_run_cut=args.dry_run_cut)
+        result, run_dir = run_job(JobSpec(cfg, cfg_path, args.scene, args.planner, seed=args.seed,
+                                          noise=not args.no_noise, out=args.out, max_steps=args.max_steps,
+                                          cut=not args.no_cut, dry_run_cut=args.dry_run_cut),
+                                  Hooks(progress=not args.quiet))
     except DeviceError as e:  # fcisim/real: the arm or camera did not open (the message says why)
         print(f"cellctl scan: {e}", file=sys.stderr)
         return 3

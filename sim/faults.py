@@ -200,9 +200,8 @@ class FaultyArm(ArmWrapper):
     def flange_index(self) -> int:
         return self._arm.flange_index
 
-    @property
-    def _joints(self) -> list[int]:  # the pybullet joint indices: tests/test_faults.py reads the joint speeds
-        return self._arm._joints
+    def joint_velocities(self):
+        return self._arm.joint_velocities()
 
     def execute(self, trajectory: JointTrajectory) -> float:
         f, i = self._faults, self.motions

@@ -178,6 +178,14 @@ class TwinArm(Arm, ContactLog, MotionLog):
             states = p.getJointStates(self._sim.robot, self._joints, physicsClientId=self._sim.client)
         return np.array([s[0] for s in states])
 
+    def joint_velocities(self) -> np.ndarray:
+        """Current joint speeds (7,), rad/s, as the simulation measures them (twin only: whether a
+        stopped arm holds)."""
+        with self._sim.lock:
+            self._sim.check()
+            states = p.getJointStates(self._sim.robot, self._joints, physicsClientId=self._sim.client)
+        return np.array([s[1] for s in states])
+
     def execute(self, trajectory: JointTrajectory) -> float:
         """Follow ``trajectory``; blocks until done and returns the max joint tracking error (rad).
 

@@ -185,9 +185,10 @@ def test_bench_goes_on_after_failures(monkeypatch, tmp_path):
     class _Scene:
         category = 1
 
-    def fake_scan(cfg, cfg_path, scene, planner, *, seed, noise, out, progress, dry_run_cut=False):
-        assert progress is False and noise is True
-        run_dir = Path(out) / f"{scene}-{planner}-{seed}"
+    def fake_job(spec, hooks=None):
+        assert hooks is None and spec.noise is True and spec.profile == "scan"
+        scene, planner, seed = spec.scene, spec.planner, spec.seed
+        run_dir = Path(spec.out) / f"{scene}-{planner}-{seed}"
         run_dir.mkdir(parents=True)
         if planner == "global":
             raise RuntimeError("planner crashed")
@@ -199,7 +200,7 @@ def test_bench_goes_on_after_failures(monkeypatch, tmp_path):
             r.error, r.terminated_by = "Unreachable: nowhere to go", "error"
         return r, run_dir
 
-    monkeypatch.setattr(cellctl.scan.run, "run_scan", fake_scan)
+    monkeypatch.setattr(cellctl.scan.run, "run_job", fake_job)
     monkeypatch.setattr(sim.scenes, "load_scene", lambda name: _Scene())
     monkeypatch.setitem(PLANNERS, "cnbv", "planners.no_such_module:Nope")
     cfg, cfg_path = load_cell_config(None)

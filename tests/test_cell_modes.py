@@ -3,7 +3,8 @@ field), a real cell whose robot does not answer starts anyway, reports itself no
 refuses jobs with `cell_not_ready` (a real `cellctl serve` on loopback, nothing mocked), and `cellctl
 doctor` says what this machine lacks (no camera, no robot here).
 
-Tests of: cellctl.config, cellctl.scan.modes, cellctl.scan.devices, cellctl.commissioning.doctor, configs.loading.
+Tests of: cellctl.config, cellctl.scan.modes, cellctl.scan.devices, cellctl.service.readiness,
+cellctl.commissioning.doctor, configs.loading.
 """
 
 from __future__ import annotations

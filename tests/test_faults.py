@@ -23,7 +23,8 @@ from pydantic import ValidationError
 
 from cellctl.config import CellConfig, load_cell_config
 from cellctl.scan.job import ScanJob
-from cellctl.scan.run import run_scan
+from cellctl.scan.run import run_job
+from cellctl.scan.spec import JobSpec
 from cellctl.service.loopback import ServiceProcess
 from configs import CONFIG_DIR
 from drivers.interfaces import Arm, DeviceError, JointTrajectory, RGBDCamera, TrajectoryError
@@ -47,8 +48,8 @@ def cell(faults: dict, execution: str = "teleport") -> CellConfig:
 
 def scan(tmp_path: Path, faults: dict, max_steps: int = 3):
     """The job as the service runs it (run folder and all), without the cut."""
-    return run_scan(cell(faults), CFG_PATH, SCENE, PLANNER, noise=False, max_steps=max_steps,
-                            progress=False, cut=False, run_dir=tmp_path / "run")
+    return run_job(JobSpec(cell(faults), CFG_PATH, SCENE, PLANNER, noise=False, max_steps=max_steps, cut=False,
+                           run_dir=tmp_path / "run"))
 
 
 def job(faults: dict, max_steps: int = 3, execution: str = "teleport") -> tuple[Twin, ScanJob]:
@@ -227,7 +228,7 @@ def _assert_holds(twin: Twin) -> None:
     for _ in range(240):  # 1 s
         p.stepSimulation(physicsClientId=twin.client)
     q1 = twin.arm.joint_positions()
-    qd = np.array([s[1] for s in p.getJointStates(twin.robot_id, twin.arm._joints, physicsClientId=twin.client)])
+    qd = twin.arm.joint_velocities()
     assert np.max(np.abs(q1 - q0)) < 0.02 and np.max(np.abs(qd)) < 1e-2, (q1 - q0, qd)
 
 

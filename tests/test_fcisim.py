@@ -51,12 +51,13 @@ def pure_twin_coverage(tmp_path: Path) -> tuple[float, float]:
     """The same job in the pure twin (mode sim), in process: the class the fcisim job must be in.
     (coverage %, seconds)."""
     from cellctl.config import load_cell_config
-    from cellctl.scan.run import run_scan
+    from cellctl.scan.run import run_job
+    from cellctl.scan.spec import JobSpec
 
     cfg, path = load_cell_config(None)
     t0 = time.monotonic()
-    result, _ = run_scan(cfg, path, REQUEST["scene"], "gnbv", noise=False, max_steps=REQUEST["max_steps"],
-                                 progress=False, cut=True, out=str(tmp_path / "twin"))
+    result, _ = run_job(JobSpec(cfg, path, REQUEST["scene"], "gnbv", noise=False, max_steps=REQUEST["max_steps"],
+                                out=str(tmp_path / "twin")))
     assert result.error is None, result.error
     return result.coverage_percent, time.monotonic() - t0
 

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from cellctl.config import load_cell_config
-from cellctl.scan.run import run_scan
+from cellctl.scan.run import run_job
+from cellctl.scan.spec import JobSpec
 from sim.scenes import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -26,7 +27,7 @@ def cell():
 
 def _scan(cell, scene, tmp_path, **kw):
     cfg, path = cell
-    return run_scan(cfg, path, scene, "gnbv", out=str(tmp_path), progress=False, **kw)
+    return run_job(JobSpec(cfg, path, scene, "gnbv", out=str(tmp_path), **kw))
 
 
 @pytest.mark.parametrize("scene", ["smooth_cylinder", "round_tank"])
@@ -206,15 +207,14 @@ def test_every_job_profile_is_set_up_and_recorded_alike(tmp_path):
     """run_job is the one entry of a scan-drawing job: the initial-view profile (the load test's
     job) is set up by the same `prepare` and writes the same result.json header as a full scan;
     an unknown profile is refused before anything runs."""
-    from cellctl.scan.run import run_job
-
     cfg, cfg_path = load_cell_config(None)
-    res = run_job("initial_view", cfg, cfg_path, "t_piece", "gnbv", run_dir=tmp_path / "iv", noise=False)
-    assert res.steps == 1 and res.terminated_by == "initial_view" and res.coverage_percent > 0
+    res, run_dir = run_job(JobSpec(cfg, cfg_path, "t_piece", "gnbv", profile="initial_view", run_dir=tmp_path / "iv",
+                                   noise=False))
+    assert run_dir == tmp_path / "iv" and res.steps == 1 and res.terminated_by == "initial_view" and res.coverage_percent > 0
     doc = json.loads((tmp_path / "iv" / "result.json").read_text())
     assert {k: doc[k] for k in ("schema_version", "cell_id", "mode", "scene_ref", "job_profile")} == {
         "schema_version": 1, "cell_id": cfg.cell_id, "mode": cfg.mode, "scene_ref": "t_piece",
         "job_profile": "initial_view"}
     with pytest.raises(ValueError, match="unknown job profile 'bogus'"):
-        run_job("bogus", cfg, cfg_path, "t_piece", "gnbv", run_dir=tmp_path / "bogus")
+        run_job(JobSpec(cfg, cfg_path, "t_piece", "gnbv", profile="bogus", run_dir=tmp_path / "bogus"))
     assert not (tmp_path / "bogus").exists()

@@ -2,7 +2,8 @@
 multicast scouting off, temp data dir), the CellClient, and short scans in the twin (smooth_cylinder,
 2 views, no noise). Nothing is mocked.
 
-Tests of: cellctl.service.server, cellctl.service.client, cellctl.service.worker, cellctl.bench.latency (the status round trip under a scan).
+Tests of: cellctl.service.server, cellctl.service.events, cellctl.service.client, cellctl.service.worker,
+cellctl.bench.latency (the status round trip under a scan).
 """
 
 from __future__ import annotations

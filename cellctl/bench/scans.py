@@ -22,6 +22,7 @@ from cellctl.bench.machine import code_info, machine_info
 from cellctl.config import CellConfig
 from cellctl.scan.artifacts import write_json
 from cellctl.scan.result import CutSummary, ScanResult
+from cellctl.scan.spec import JobSpec
 from planners.registry import PLANNERS, planner_class
 
 SCHEMA_VERSION = 1
@@ -182,7 +183,7 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
               dry_run_cut: bool = False) -> dict:
     """Run the grid, write OUT/bench.json (after every run) and OUT/runs/seed<k>/<run folders>;
     returns the bench document. The report is written by the caller (cellctl.bench.report)."""
-    from cellctl.scan.run import run_scan
+    from cellctl.scan.run import run_job
     from planners.config import load_planners_config
     from sim.scenes import load_scene
 
@@ -225,7 +226,7 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
                                             terminated_by="error"),
                                  None, 0.0, None)
             else:
-                rec = _one_run(cfg, cfg_path, scene, categories[scene], planner, seed, out, memory, run_scan,
+                rec = _one_run(cfg, cfg_path, scene, categories[scene], planner, seed, out, memory, run_job,
                                dry_run_cut)
             doc["runs"].append(rec)
             doc["process"] = {"max_rss_mb": max_rss_mb(), "wall_s": round(time.perf_counter() - t_start, 1)}
@@ -240,7 +241,7 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
     return doc
 
 
-def _one_run(cfg, cfg_path, scene, category, planner, seed, out: Path, memory: bool, run_scan,
+def _one_run(cfg, cfg_path, scene, category, planner, seed, out: Path, memory: bool, run_job,
              dry_run_cut: bool = False) -> dict:
     runs_root = out / "runs" / f"seed{seed}"
     before = _subdirs(runs_root)
@@ -251,8 +252,8 @@ def _one_run(cfg, cfg_path, scene, category, planner, seed, out: Path, memory: b
     t0 = time.perf_counter()
     run_dir: Path | None
     try:
-        result, run_dir = run_scan(cfg, cfg_path, scene, planner, seed=seed, noise=True,
-                                           out=str(runs_root), progress=False, dry_run_cut=dry_run_cut)
+        result, run_dir = run_job(JobSpec(cfg, cfg_path, scene, planner, seed=seed, noise=True, out=str(runs_root),
+                                          dry_run_cut=dry_run_cut))
     except Exception as e:  # noqa: BLE001 - the bench records it and goes on
         import traceback
 

@@ -9,34 +9,30 @@ next-view planning, the cut and the plots. About 0.3 s on one free core at 640x4
 
 from __future__ import annotations
 
-import threading
 import time
 from pathlib import Path
-from typing import Callable
 
-from cellctl.config import CellConfig
 from cellctl.scan.artifacts import write_ply
 from cellctl.scan.result import ScanResult, StepRecord
 from cellctl.scan.run import prepare, write_result
+from cellctl.scan.spec import Hooks, JobSpec
 from planners import clouds
 from planners.metrics import coverage
 
 
-def run_initial_view(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, seed: int | None = None,
-                     noise: bool = True, run_dir: Path, cancel: threading.Event | None = None,
-                     on_step: Callable[[StepRecord], None] | None = None) -> ScanResult:
-    """One view of ``scene_ref`` from its first initial-view pose (the arm is not moved), set up and
+def run_initial_view(spec: JobSpec, hooks: Hooks) -> tuple[ScanResult, Path]:
+    """One view of ``spec.scene`` from its first initial-view pose (the arm is not moved), set up and
     recorded as every job is (cellctl.scan.run.prepare, write_result). The result has steps=1 and
     terminated_by="initial_view"; result.json is written whatever happens."""
     from sim.twin import Twin
 
-    setup = prepare(cfg, cfg_path, scene_ref, planner, seed=seed, noise=noise, run_dir=run_dir)
-    pcfg, scene, twin_cfg = setup.pcfg, setup.scene, setup.twin_cfg
-    result = ScanResult(scene=scene.name, planner=planner)
+    setup = prepare(spec)
+    pcfg, scene, twin_cfg, run_dir = setup.pcfg, setup.scene, setup.twin_cfg, setup.run_dir
+    result = ScanResult(scene=scene.name, planner=spec.planner)
     try:
-        if cancel is not None and cancel.is_set():
+        if hooks.cancel is not None and hooks.cancel.is_set():
             result.terminated_by = "cancelled"
-            return result
+            return result, run_dir
         if len(scene.initial_view_candidates) == 0:
             raise ValueError(f"scene {scene.name} has no initial view")
         T = scene.initial_view_candidates[0]
@@ -62,12 +58,12 @@ def run_initial_view(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: s
         result.coverage_hit, result.coverage_total, result.coverage_percent = cov.hit, cov.total, round(cov.percent, 2)
         result.terminated_by = "initial_view"
         write_ply(run_dir / "drawing.ply", drawing)
-        if on_step:
-            on_step(rec)
+        if hooks.on_step:
+            hooks.on_step(rec)
     except Exception as e:
         result.error = result.error or f"{type(e).__name__}: {e}"
         result.terminated_by = result.terminated_by or "error"
         raise
     finally:
-        write_result(run_dir, cfg, scene_ref, result, "initial_view")
-    return result
+        write_result(run_dir, spec, result)
+    return result, run_dir

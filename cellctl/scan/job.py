@@ -12,6 +12,7 @@ from __future__ import annotations
 import threading
 import time
 import traceback
+from dataclasses import dataclass
 from typing import Callable, TypeVar
 
 import numpy as np
@@ -53,6 +54,21 @@ class ScanError(RuntimeError):
         self.terminated_by = terminated_by
 
 
+@dataclass(frozen=True)
+class Move:
+    """One move of the arm to a view: which of the ranked poses it reached, what planning and moving
+    took, how it went and how close the camera came to the planned pose."""
+
+    rank: int
+    planning_s: float  # IK, collision checks, trajectory
+    motion_s: float
+    tracking_error_rad: float
+    via: str  # direct, retract, approach, retract+approach, park
+    contacts: list[dict]  # robot-scene contacts the twin saw on this move
+    reach_error_m: float
+    reach_error_deg: float
+
+
 class ScanJob:
     def __init__(self, arm: Arm, camera: RGBDCamera, planner_name: str, pcfg: PlannersConfig,
                  mcfg: MotionConfig, recorder=None, progress: Callable[[StepRecord], None] | None = None,
@@ -75,7 +91,6 @@ class ScanJob:
                                         ik_seeds=mcfg.ik_seeds, retract_m=mcfg.retract_m,
                                         via_candidates=mcfg.via_candidates, budget_s=mcfg.motion_budget_s,
                                         framed=mcfg.framed_views, park_q=None if park is None else np.asarray(park, dtype=np.float64))
-        self.last_via = ""
         self._scene_stale = True  # the collision scene lags the grid until the next move
         self.recorder = recorder
         self.progress = progress
@@ -95,8 +110,6 @@ class ScanJob:
         log = self.abilities.events  # the arm's own log (Franka: reflexes, recoveries)
         self._arm_events_from = len(log.events) if log is not None else 0
         self.self_filtered = 0  # points dropped because they lay on the arm
-        self.last_reach_error_m = self.last_reach_error_deg = 0.0
-        self.last_contacts: list[dict] = []
         self.tracking_errors: list[float] = []  # what arm.execute() returned, per move
         self.first_color: np.ndarray | None = None  # the initial view, for the run folder's picture
         intr = camera.intrinsics
@@ -104,27 +117,33 @@ class ScanJob:
         self.image_size = (intr.width, intr.height)
 
     # --- motion ---------------------------------------------------------------------------------
-    def _move(self, poses: np.ndarray) -> tuple[int, float, float, float]:
-        """Reach the first of the ranked poses with a clear motion: (rank, motion planning s, motion s,
-        tracking error). The collision scene is the grid as scanned so far."""
+    def _move(self, poses: np.ndarray) -> Move:
+        """Reach the first of the ranked poses with a clear motion. The collision scene is the grid as
+        scanned so far."""
         t0 = time.perf_counter()
         if self.checker is not None and self._scene_stale:
             self.checker.set_scene_from_grid(self.grid)
             self._scene_stale = False
         mv = self.motion.plan(self.arm.joint_positions(), poses)
-        self.last_via = mv.via
         plan_s = time.perf_counter() - t0
         path = mv.path
-        err = self.arm.execute(JointTrajectory(path.times, path.positions, path.velocities))
-        self.tracking_errors.append(float(err))
+        err = float(self.arm.execute(JointTrajectory(path.times, path.positions, path.velocities)))
+        self.tracking_errors.append(err)
         contacts = self.abilities.contacts  # the twin's own check
-        self.last_contacts = list(contacts.last_motion_contacts) if contacts is not None else []
         # Did the camera get there? A view from elsewhere (the arm stopped or deflected on the way)
         # must not count as the planned one.
-        T = self.arm.camera_pose()
-        self.last_reach_error_m = float(np.linalg.norm(T[:3, 3] - poses[mv.index][:3, 3]))
-        self.last_reach_error_deg = float(np.degrees(np.arccos(np.clip(T[:3, 2] @ poses[mv.index][:3, 2], -1.0, 1.0))))
-        return mv.index, plan_s, float(path.duration), float(err)
+        T, goal = self.arm.camera_pose(), poses[mv.index]
+        return Move(mv.index, plan_s, float(path.duration), err, mv.via,
+                    list(contacts.last_motion_contacts) if contacts is not None else [],
+                    float(np.linalg.norm(T[:3, 3] - goal[:3, 3])),
+                    float(np.degrees(np.arccos(np.clip(T[:3, 2] @ goal[:3, 2], -1.0, 1.0)))))
+
+    @staticmethod
+    def _count(res: ScanResult, mv: Move) -> None:
+        """A move outside the views' steps (the initial one, park, the cut's views) into the job's totals."""
+        res.motion_planning_s += mv.planning_s
+        res.motion_s += mv.motion_s
+        res.motion_contacts += len(mv.contacts)
 
     def look_along(self, targets: list[tuple[np.ndarray, np.ndarray]], res: "ScanResult") -> int:
         """Views for the cut, after the scan: for each (point, outward normal) the camera looks at the
@@ -142,15 +161,13 @@ class ScanJob:
             eyes = np.array([point + d * u for d in (0.35, 0.45) for u in dirs])
             poses = poses_from(eyes, look_at_rotations(eyes, point))
             try:
-                _, plan_s, motion_s, _ = self._move(poses)
+                mv = self._move(poses)
             except Unreachable:
                 continue
             k = len(res.records) + taken
             frame = self._capture(k)
             self.process(frame, self.arm.camera_pose(), self.arm.joint_positions())
-            res.motion_planning_s += plan_s
-            res.motion_s += motion_s
-            res.motion_contacts += len(self.last_contacts)
+            self._count(res, mv)
             taken += 1
         return taken
 
@@ -176,22 +193,18 @@ class ScanJob:
         if np.max(np.abs(self.arm.joint_positions() - park)) < 1e-3:
             return True
         try:
-            _, plan_s, motion_s, _ = self._move(self.kin.fk(park)[None])
+            self._count(res, self._move(self.kin.fk(park)[None]))
         except Unreachable:
             return False
-        res.motion_planning_s += plan_s
-        res.motion_s += motion_s
-        res.motion_contacts += len(self.last_contacts)
         return True
 
-    def move_to_initial(self, candidates: np.ndarray) -> tuple[int, float, float]:
+    def move_to_initial(self, candidates: np.ndarray) -> Move:
         if len(candidates) == 0:
             raise ScanError("no initial view: the scene gives no pose that sees the drawing")
         try:
-            idx, plan_s, motion_s, _ = self._move(candidates)
+            return self._move(candidates)
         except Unreachable as e:
             raise ScanError(f"no initial view is reachable: {e}", "unreachable") from None
-        return idx, plan_s, motion_s
 
     # --- faults ---------------------------------------------------------------------------------
     def _incident(self, step: int, what: str, detail: str) -> None:
@@ -304,10 +317,7 @@ class ScanJob:
             if self.cancelled():
                 res.terminated_by = "cancelled"
                 return res
-            _, plan_s, motion_s = self.move_to_initial(initial_candidates)
-            res.motion_contacts += len(self.last_contacts)
-            res.motion_planning_s += plan_s
-            res.motion_s += motion_s
+            self._count(res, self.move_to_initial(initial_candidates))
             initial_pose = self.arm.camera_pose()
             self._explore(res, initial_pose, gt_points)
         except Exception as e:  # noqa: BLE001 - any failure ends the scan, never loses what was recorded
@@ -396,14 +406,13 @@ class ScanJob:
             try:
                 if len(plan.poses) == 0:
                     raise Unreachable("planner offered no candidate for this target")
-                rank, plan_s, motion_s, err = self._move(plan.poses[:n])
-                rec.chosen_rank, rec.motion_s, rec.tracking_error_rad = rank, motion_s, err
-                rec.motion_planning_s += plan_s
-                rec.reach_error_m, rec.reach_error_deg = self.last_reach_error_m, self.last_reach_error_deg
-                rec.contacts = self.last_contacts
-                rec.via = self.last_via
+                mv = self._move(plan.poses[:n])
+                rec.chosen_rank, rec.motion_s, rec.tracking_error_rad = mv.rank, mv.motion_s, mv.tracking_error_rad
+                rec.motion_planning_s += mv.planning_s
+                rec.reach_error_m, rec.reach_error_deg = mv.reach_error_m, mv.reach_error_deg
+                rec.contacts, rec.via = mv.contacts, mv.via
                 if rec.reach_error_m > REACH_TOL_M or rec.reach_error_deg > REACH_TOL_DEG:
-                    plan.tried = rank + 1
+                    plan.tried = mv.rank + 1
                     self.planner.reject(plan)  # the view will not be where it was planned: give the target up
                 return plan
             except Unreachable:

@@ -5,10 +5,8 @@ run folder."""
 from __future__ import annotations
 
 import sys
-import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -20,6 +18,7 @@ from cellctl.scan.job import ScanJob
 from cellctl.scan.plots import coverage_figure, cut_figure
 from cellctl.scan.recording import ScanRecorder
 from cellctl.scan.result import ResultFile, ScanResult, StepRecord
+from cellctl.scan.spec import Hooks, JobSpec
 from drivers.interfaces import Arm
 from planners.config import PlannersConfig, load_planners_config
 from planners.metrics import cut_accuracy
@@ -97,92 +96,78 @@ class JobSetup:
     run_dir: Path
 
 
-def prepare(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, seed: int | None = None,
-            noise: bool = True, max_steps: int | None = None, run_dir: Path | None = None,
-            out: str | None = None) -> JobSetup:
-    """The set-up of a job; ``run_dir``: this folder (the service's per-job folder), else a new
-    stamped one under ``out`` (default: the cell's runs_dir)."""
-    pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
-    if max_steps is not None:
-        pcfg = pcfg.model_copy(update={"max_steps": max_steps})
-    scene = load_scene(scene_ref)
-    cam_cfg = cfg.twin.camera.model_copy(update={"noise": noise, **({"seed": seed} if seed is not None else {})})
+def prepare(spec: JobSpec) -> JobSetup:
+    """The set-up of a job, whatever its profile."""
+    cfg = spec.cfg
+    pcfg = load_planners_config(spec.cfg_path.parent / cfg.planners_config)
+    if spec.max_steps is not None:
+        pcfg = pcfg.model_copy(update={"max_steps": spec.max_steps})
+    scene = load_scene(spec.scene)
+    seed = {"seed": spec.seed} if spec.seed is not None else {}
+    cam_cfg = cfg.twin.camera.model_copy(update={"noise": spec.noise, **seed})
     twin_cfg = cfg.twin.model_copy(update={"camera": cam_cfg, "tool": twin_torch(pcfg.cutpath)})
-    if run_dir is None:
-        run_dir = new_run_dir(out or cfg.runs_dir, scene.name, planner)
+    if spec.run_dir is None:
+        run_dir = new_run_dir(spec.out or cfg.runs_dir, scene.name, spec.planner)
     else:
+        run_dir = spec.run_dir
         run_dir.mkdir(parents=True, exist_ok=True)
     return JobSetup(pcfg, scene, twin_cfg, run_dir)
 
 
-def write_result(run_dir: Path, cfg: CellConfig, scene_ref: str, result: ScanResult, profile: str = "scan") -> None:
+def write_result(run_dir: Path, spec: JobSpec, result: ScanResult) -> None:
     """The job's result.json: the one record of a run folder, whatever the profile."""
-    file = ResultFile(cell_id=cfg.cell_id, mode=cfg.mode, scene_ref=scene_ref, job_profile=profile, **result.model_dump())
+    file = ResultFile(cell_id=spec.cfg.cell_id, mode=spec.cfg.mode, scene_ref=spec.scene, job_profile=spec.profile,
+                      **result.model_dump())
     write_json(run_dir / "result.json", file.model_dump())
 
 
-def run_job(profile: str, cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, run_dir: Path,
-            seed: int | None = None, noise: bool = True, max_steps: int | None = None, dry_run_cut: bool = False,
-            cancel: threading.Event | None = None, on_step: Callable[[StepRecord], None] | None = None,
-            on_phase: Callable[[str], None] | None = None, arm_host: str | None = None) -> ScanResult:
-    """A scan-drawing job by its profile (``service.job_profile``): "scan", the whole job
-    (``run_scan``), or "initial_view", its first view only (cellctl.scan.initial_view)."""
-    if profile == "initial_view":
+def run_job(spec: JobSpec, hooks: Hooks = Hooks()) -> tuple[ScanResult, Path]:
+    """The one runner of a scan-drawing job: (its result, its run folder), by its profile: "scan", on the
+    devices of ``cfg.mode`` (cellctl.scan.modes), or "initial_view" (cellctl.scan.initial_view). The run
+    folder ends with a result.json whatever happens; an exception is raised after it is written."""
+    if spec.profile == "initial_view":
         from cellctl.scan.initial_view import run_initial_view
 
-        return run_initial_view(cfg, cfg_path, scene_ref, planner, seed=seed, noise=noise, run_dir=run_dir,
-                                cancel=cancel, on_step=on_step)
-    if profile != "scan":
-        raise ValueError(f"unknown job profile {profile!r}; choose scan or initial_view")
-    result, _ = run_scan(cfg, cfg_path, scene_ref, planner, seed=seed, noise=noise, max_steps=max_steps,
-                                 progress=False, cut=True, dry_run_cut=dry_run_cut, run_dir=run_dir, cancel=cancel,
-                                 on_step=on_step, on_phase=on_phase, arm_host=arm_host)
-    return result
+        return run_initial_view(spec, hooks)
+    if spec.profile != "scan":
+        raise ValueError(f"unknown job profile {spec.profile!r}; choose scan or initial_view")
+    return _run_scan(spec, hooks)
 
 
-def run_scan(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, seed: int | None = None,
-                     noise: bool = True, out: str | None = None, max_steps: int | None = None,
-                     progress: bool = True, cut: bool = True, dry_run_cut: bool = False,
-                     run_dir: Path | None = None, cancel: threading.Event | None = None,
-                     on_step: Callable[[StepRecord], None] | None = None,
-                     on_phase: Callable[[str], None] | None = None,
-                     arm_host: str | None = None) -> tuple[ScanResult, Path]:
-    """One job on the devices of ``cfg.mode`` (cellctl.scan.devices.open_devices; ``arm_host``: fcisim, a
-    franky-sim already running there). ``run_dir``: write into this folder (the service's per-job
-    folder) instead of a new stamped one under ``out``. ``cancel``: set from another thread to end the
-    scan early ("cancelled", partial result kept, no cut). ``on_step`` gets every StepRecord,
-    ``on_phase`` "scanning" / "planning-cut"."""
-    setup = prepare(cfg, cfg_path, scene_ref, planner, seed=seed, noise=noise, max_steps=max_steps, run_dir=run_dir,
-                    out=out)
+def _run_scan(spec: JobSpec, hooks: Hooks) -> tuple[ScanResult, Path]:
+    """The whole job: explore, then (``spec.cut``) plan the cut, optionally run it in the twin."""
+    cfg, planner = spec.cfg, spec.planner
+    setup = prepare(spec)
     pcfg, scene, twin_cfg, run_dir = setup.pcfg, setup.scene, setup.twin_cfg, setup.run_dir
     recorder = ScanRecorder(run_dir / "scan.rrd", f"{scene.name}-{planner}", cfg.rerun_connect)
     result = ScanResult(scene=scene.name, planner=planner)
     job = None
 
     def report(rec: StepRecord) -> None:
-        if progress:
+        if hooks.progress:
             print(f"step {rec.step}: {rec.points} pts, drawing {rec.drawing_points}, frontier {rec.frontier_cells}, "
                   f"{rec.candidates} candidates, planning {rec.planning_s:.3f} s, motion {rec.motion_s:.2f} s",
                   file=sys.stderr, flush=True)
-        if on_step:
-            on_step(rec)
+        if hooks.on_step:
+            hooks.on_step(rec)
 
     unsaved: list[str] = []
     try:  # whatever happens, the run folder ends with a result.json and a closed recording
         try:
-            with open_devices(cfg, scene, twin_cfg, run_dir=run_dir, arm_host=arm_host) as dev:
+            with open_devices(cfg, scene, twin_cfg, run_dir=run_dir, arm_host=spec.arm_host) as dev:
                 scene = dev.scene  # as placed in the twin (a fault may have moved it)
                 recorder.log_scene(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points)
                 job = ScanJob(dev.arm, dev.camera, planner, pcfg, cfg.motion, recorder, report,
-                              park_q=twin_cfg.home_q, cancel=cancel)
-                if on_phase:
-                    on_phase("scanning")
+                              park_q=twin_cfg.home_q, cancel=hooks.cancel)
+                if hooks.on_phase:
+                    hooks.on_phase("scanning")
                 result = job.run(scene.name, scene.initial_view_candidates, scene.gt_points)
-                if cut and result.error is None and not job.cancelled() and len(job.drawing):
-                    if on_phase:
-                        on_phase("planning-cut")
+                if spec.cut and result.error is None and not job.cancelled() and len(job.drawing):
+                    if hooks.on_phase:
+                        hooks.on_phase("planning-cut")
                     truth = (scene.drawing_polylines, scene.gt_points) if dev.twin is not None else None
-                    _cut_phase(job, pcfg, cfg, dev.arm, run_dir, recorder, result, dry_run_cut, progress, truth)
+                    _cut_phase(job, pcfg, cfg, dev.arm, run_dir, recorder, result, spec.dry_run_cut, hooks.progress,
+                               truth)
         finally:  # what the scan saw is kept, also when the cut phase or the twin failed afterwards
             if job is not None:
                 unsaved = _keep_views(job, run_dir, scene, pcfg, planner, result)
@@ -195,7 +180,7 @@ def run_scan(cfg: CellConfig, cfg_path: Path, scene_ref: str, planner: str, *, s
         result.terminated_by = result.terminated_by or "error"
         raise
     finally:
-        write_result(run_dir, cfg, scene_ref, result)
+        write_result(run_dir, spec, result)
         recorder.close()
     return result, run_dir
 

@@ -28,15 +28,17 @@ import zenoh
 from cellctl.config import CellConfig, ServiceConfig
 from cellctl.scan.modes import MODES
 from cellctl.service.api import (MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, ApiError, Artifacts, CancelReply, CancelRequest,
-                                 CellStatus, JobEvent, JobList, Keys, ListJobsRequest, Progress, ResultSummary,
+                                 CellStatus, JobList, Keys, ListJobsRequest, ResultSummary,
                                  ScanDrawingRequest, SubmitReply, dumps, parse_payload)
 from cellctl.service.client import zenoh_error
+from cellctl.service.events import JobEvents
+from cellctl.service.readiness import READINESS_PERIOD_S, DeviceWatch
 from cellctl.service.store import JobStore, StoreError, now_iso
+from cellctl.scan.spec import JobSpec
 from cellctl.service.worker import Worker, summary_from_file
 
 log = logging.getLogger("cellctl.service.server")
 JSON = zenoh.Encoding.APPLICATION_JSON
-READINESS_PERIOD_S = 10.0  # fcisim/real: the arm and camera are probed this often while no job runs
 
 
 def version() -> str:
@@ -100,7 +102,6 @@ class CellService:
         from planners.config import load_planners_config
 
         self.cfg, self.cfg_path, self.scfg = cfg, Path(cfg_path), cfg.service
-        self.mode = MODES[cfg.mode]
         if self.scfg.rerun_connect:
             self.cfg = cfg.model_copy(update={"rerun_connect": self.scfg.rerun_connect})
         self.data_dir = Path(data_dir or self.scfg.data_dir).resolve()
@@ -116,8 +117,7 @@ class CellService:
         self._running: JobControl | None = None
         self._accepting = False
         self._stopping = threading.Event()
-        self._events_lock = threading.Lock()
-        self._seq: dict[str, int] = {}
+        self.events = JobEvents(self.store, self.keys, lambda: self.session)
         self._worker: threading.Thread | None = None
         self._job_worker = Worker()  # the jobs' own process (cellctl.service.worker)
         self.session: zenoh.Session | None = None
@@ -125,15 +125,7 @@ class CellService:
         self._lock_file = None
         self.started_at = now_iso()
         self._t0 = time.monotonic()
-        # devices (fcisim, real): probed at start, then by a watcher thread; one holder at a time, because a
-        # Franka takes one FCI client (a probe must not connect while a job holds the arm)
-        self.arm_host: str | None = None  # fcisim embedded: where the service's own franky-sim serves
-        self._franky_sim = None
-        self._sim_error: str | None = None
-        self._readiness = None
-        self._devices_lock = threading.Lock()
-        self._recheck = threading.Event()
-        self._watcher: threading.Thread | None = None
+        self.devices = DeviceWatch(self.cfg, MODES[cfg.mode])  # readiness, and fcisim's own franky-sim
 
     def job_dir(self, job_id: str) -> Path:
         return self.data_dir / "jobs" / job_id
@@ -142,13 +134,13 @@ class CellService:
     def start(self) -> None:
         """Mark what a previous process left unfinished as interrupted, open the session, declare the
         API, start the worker. On any failure the session is closed again."""
-        if self.scfg.job_profile != "scan" and not self.mode.twin_arm:  # a load-test job on a real arm: never
+        if self.scfg.job_profile != "scan" and not self.devices.mode.twin_arm:  # a load-test job on a real arm: never
             raise ServiceError(f"service.job_profile {self.scfg.job_profile} is for load tests in the twin; "
                                f"mode {self.cfg.mode} needs job_profile scan")
         self._lock_data_dir()
         recovered = self.store.interrupt_unfinished("the service stopped before the job ended")
         try:
-            self._start_devices()
+            self.devices.start()
         except BaseException:
             self.close()
             raise
@@ -160,13 +152,12 @@ class CellService:
             self._declared.append(s.declare_queryable(k.jobs_tree, self._on_jobs_query))
             for job_id in recovered:
                 rec = self.store.get(job_id)
-                self._seq[job_id] = rec.progress.seq if rec and rec.progress else -1
-                self._emit(job_id, "interrupted", "interrupted", message="the service stopped before the job ended")
+                self.events.continue_from(job_id, rec.progress.seq if rec and rec.progress else -1)
+                self.events.emit(job_id, "interrupted", "interrupted", message="the service stopped before the job "
+                                 "ended")
             self._worker = threading.Thread(target=self._work, name="cell-worker", daemon=True)
             self._worker.start()
-            if self.mode.probed:
-                self._watcher = threading.Thread(target=self._watch_devices, name="cell-devices", daemon=True)
-                self._watcher.start()
+            self.devices.watch()
             with self._cv:
                 self._accepting = True
             self._declared.append(s.liveliness().declare_token(k.alive))  # last: alive means ready
@@ -198,7 +189,7 @@ class CellService:
         with self._cv:
             self._accepting = False
             self._stopping.set()
-            self._recheck.set()  # the device watcher ends
+            self.devices.stop()
             queued = list(self._queue)
             self._queue.clear()
             running = self._running
@@ -229,15 +220,8 @@ class CellService:
             finally:
                 self.session = None
         self._stopping.set()
-        self._recheck.set()
-        if self._watcher is not None:  # a probe in flight ends within its timeouts; a process leaving
-            # while libfranka or librealsense threads run is aborted by the C++ runtime
-            self._watcher.join(2.0 * self.cfg.arm.connect_timeout_s + 15.0 if self.cfg.arm else 15.0)
-            self._watcher = None
         self._job_worker.close()  # a job that did not stop within the grace holds the arm: killed
-        if self._franky_sim is not None:
-            self._franky_sim.close()
-            self._franky_sim = None
+        self.devices.close()
         self.store.close()
         if self._lock_file is not None:
             self._lock_file.close()  # releases the flock
@@ -293,8 +277,8 @@ class CellService:
     def status(self) -> CellStatus:
         with self._cv:
             queue_length, running, accepting = len(self._queue), self._running, self._accepting
-        rd = self.readiness()
-        devices = self.mode.describe(self.cfg, self.arm_host)
+        rd = self.devices.readiness()
+        devices = self.devices.describe()
         if self.scfg.job_profile != "scan":  # a load-test cell must not pass for a scanning one
             devices += f"; job profile {self.scfg.job_profile}: one view, no motion, no cut"
         return CellStatus(cell_id=self.cfg.cell_id, version=version(), mode=self.cfg.mode, arm_ready=rd.arm_ready,
@@ -309,9 +293,9 @@ class CellService:
         with self._cv:
             if not self._accepting:
                 raise ApiError("shutting_down", "the service is stopping and takes no new jobs")
-            rd = self.readiness()
+            rd = self.devices.readiness()
             if not rd.ready:  # refused before anything is stored: the tablet keeps the job and submits again
-                self._recheck.set()
+                self.devices.poke()
                 raise ApiError("cell_not_ready", f"the cell is not ready, nothing was queued: {rd.reason}; submit "
                                f"again once status shows ready (the devices are checked every "
                                f"{READINESS_PERIOD_S:g} s)"[:2000])
@@ -325,7 +309,7 @@ class CellService:
             self._queue.append(job_id)
             position = len(self._queue)
             # under the lock: the worker cannot start the job (and publish "scanning") before "queued"
-            self._emit(job_id, "queued", "queued", max_steps=req.max_steps or self.default_max_steps)
+            self.events.emit(job_id, "queued", "queued", max_steps=req.max_steps or self.default_max_steps)
             self._cv.notify()
         log.info("job %s queued (%s, %s, position %d)", job_id, req.scene, req.planner, position)
         return SubmitReply(job_id=job_id, queue_position=position)
@@ -383,108 +367,6 @@ class CellService:
                            f"({allowed})"[:2000], [_detail("scene", "no such scene file")])
         return str(path)
 
-    # --- devices ----------------------------------------------------------------------------------
-    def _start_devices(self) -> None:
-        """fcisim with an embedded simulator: start the cell's franky-sim (it lives as long as the service,
-        like a robot, so the arm keeps its pose between jobs and can be probed). Then the first readiness
-        check, before the cell answers anyone."""
-        if self.mode.starts_simulator(self.cfg):
-            from cellctl.scan.fcisim import FrankySim
-            from drivers.interfaces import DeviceError
-
-            sim = FrankySim(self.cfg.arm.host, self.cfg.twin.home_q, self.cfg.fcisim.start_timeout_s)
-            try:
-                self.arm_host = sim.start()
-                self._franky_sim = sim
-                log.info("franky-sim serves the fcisim arm at %s", self.arm_host)
-            except (DeviceError, OSError) as e:  # the cell serves anyway and says why it is not ready
-                self._sim_error = f"the embedded franky-sim did not start: {e}"
-                log.error("%s", self._sim_error)
-        self._refresh_readiness()
-
-    def readiness(self):
-        rd = self._readiness
-        if rd is None:  # a mode that is not probed (static), or before the first check
-            from cellctl.scan.devices import Readiness
-
-            if not self.mode.probed:
-                return self.mode.readiness(self.cfg)
-            return Readiness(False, False, "not checked yet", "not checked yet")
-        return rd
-
-    def _refresh_readiness(self, *, blocking: bool = True) -> None:
-        from cellctl.scan.devices import check_readiness
-
-        if not self.mode.probed:
-            return
-        if not self._devices_lock.acquire(blocking=blocking):
-            return  # a job holds the devices: its own outcome tells
-        try:
-            sim = self._franky_sim
-            if sim is not None and not sim.alive():  # our own robot is gone: say so, not "FCI inactive"
-                status = getattr(sim.proc, "returncode", None)
-                self._sim_error = f"the embedded franky-sim exited (status {status}); restart the service"
-            if self._sim_error:
-                from cellctl.scan.devices import Readiness
-
-                rd = Readiness(False, True, self._sim_error, "twin renderer posed from the arm")
-            else:
-                rd = check_readiness(self.cfg, self.arm_host)
-        finally:
-            self._devices_lock.release()
-        if rd != self._readiness:
-            (log.info if rd.ready else log.warning)("cell %s: %s", "ready" if rd.ready else "not ready",
-                                                    f"arm: {rd.arm}; camera: {rd.camera}")
-        self._readiness = rd
-
-    def _watch_devices(self) -> None:
-        """Re-probe every READINESS_PERIOD_S while no job runs, and at once when poked (a refused submit,
-        a finished job): a robot switched on, or an unplugged camera, shows in the status."""
-        while not self._stopping.is_set():
-            self._recheck.wait(READINESS_PERIOD_S)
-            self._recheck.clear()
-            if self._stopping.is_set():
-                return
-            try:
-                self._refresh_readiness(blocking=False)
-            except Exception:  # noqa: BLE001 - the watcher must outlive one bad probe
-                log.exception("checking the devices failed")
-
-    # --- events -----------------------------------------------------------------------------------
-    def _emit(self, job_id: str, phase: str, state: str, *, step: int | None = None, max_steps: int | None = None,
-              coverage_percent: float | None = None, drawing_points: int | None = None,
-              message: str | None = None) -> None:
-        """Number, store (as the job's progress) and publish one event. Publication never raises: a
-        lost event must not fail the job (the record has the same facts)."""
-        with self._events_lock:
-            seq = self._seq.get(job_id, -1) + 1
-            self._seq[job_id] = seq
-            at = now_iso()
-            if max_steps is None or step is None or coverage_percent is None:  # carry what the last event knew
-                rec = self.store.get(job_id)
-                last = rec.progress if rec else None
-                if last is not None:
-                    max_steps = max_steps if max_steps is not None else last.max_steps
-                    if phase not in ("queued",):
-                        step = step if step is not None else last.step
-                        coverage_percent = coverage_percent if coverage_percent is not None else last.coverage_percent
-                        drawing_points = drawing_points if drawing_points is not None else last.drawing_points
-            ev = JobEvent(job_id=job_id, seq=seq, phase=phase, state=state, step=step, max_steps=max_steps,
-                          coverage_percent=coverage_percent, drawing_points=drawing_points, time=at,
-                          message=message[:2000] if message else None)
-            self.store.set_progress(job_id, Progress(phase=phase, seq=seq, step=step, max_steps=max_steps,
-                                                     coverage_percent=coverage_percent,
-                                                     drawing_points=drawing_points, at=at))
-            if phase in ("done", "failed", "cancelled", "interrupted"):
-                self._seq.pop(job_id, None)
-            session = self.session
-            if session is None:
-                return
-            try:
-                session.put(self.keys.events(job_id), dumps(ev), encoding=JSON)
-            except Exception as e:  # noqa: BLE001 - session closing
-                log.warning("event %s/%d not published: %s", job_id, seq, e)
-
     # --- the worker -------------------------------------------------------------------------------
     def _work(self) -> None:
         try:
@@ -501,7 +383,7 @@ class CellService:
                 ctl = self._running = JobControl(job_id)
                 self.store.transition(job_id, "running")
             try:
-                with self._devices_lock:
+                with self.devices.held:
                     self._run(ctl)
             except Exception:  # noqa: BLE001 - the worker must outlive any one job
                 log.exception("job %s: the worker failed", job_id)
@@ -510,26 +392,24 @@ class CellService:
             finally:
                 with self._cv:
                     self._running = None
-                self._recheck.set()  # the job may have found the arm or camera gone
+                self.devices.poke()  # the job may have found the arm or camera gone
 
     def _run(self, ctl: JobControl) -> None:
-        from cellctl.service.worker import JobSpec
-
         job_id = ctl.job_id
         rec = self.store.get(job_id)
         req = rec.request
         max_steps = req.max_steps or self.default_max_steps
         job_dir = self.job_dir(job_id)
         log.info("job %s running: %s with %s", job_id, req.scene, req.planner)
-        self._emit(job_id, "scanning", "running", max_steps=max_steps, message="building the twin")
+        self.events.emit(job_id, "scanning", "running", max_steps=max_steps, message="building the twin")
 
         def on_step(r: dict) -> None:
-            self._emit(job_id, "scanning", self._state_of(ctl), step=r["step"],
+            self.events.emit(job_id, "scanning", self._state_of(ctl), step=r["step"],
                        coverage_percent=r["coverage_percent"], drawing_points=r["drawing_points"])
 
         def on_phase(phase: str) -> None:
             if phase == "planning-cut":
-                self._emit(job_id, "planning-cut", self._state_of(ctl))
+                self.events.emit(job_id, "planning-cut", self._state_of(ctl))
 
         timer = threading.Timer(self.scfg.job_timeout_s, ctl.request, ("timeout",))
         timer.daemon = True
@@ -538,9 +418,9 @@ class CellService:
         try:
             scene = self._check_scene(req.scene)  # again: the file may have changed since the submit
             if not ctl.cancel.is_set():
-                spec = JobSpec(self.cfg, self.cfg_path, self.scfg.job_profile, scene, req.planner, job_dir,
+                spec = JobSpec(self.cfg, self.cfg_path, scene, req.planner, profile=self.scfg.job_profile,
                                seed=req.seed, noise=req.noise, max_steps=req.max_steps, dry_run_cut=req.dry_run_cut,
-                               arm_host=self.arm_host)
+                               run_dir=job_dir, arm_host=self.devices.arm_host)
                 out = self._job_worker.run(spec, ctl.cancel, on_step=on_step, on_phase=on_phase)
                 summary, error, crashed = out.summary, out.error, out.crashed
                 if crashed:
@@ -586,7 +466,7 @@ class CellService:
                 if self._running is not None and self._running.job_id == job_id:
                     self._running = None
         last = result.coverage_percent if result is not None else None
-        self._emit(job_id, state, state, coverage_percent=last, message=(error or note or "")[:2000] or None)
+        self.events.emit(job_id, state, state, coverage_percent=last, message=(error or note or "")[:2000] or None)
         log.info("job %s %s%s", job_id, state, f": {error.splitlines()[0]}" if error else "")
 
 

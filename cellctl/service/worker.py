@@ -24,31 +24,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from cellctl.config import CellConfig
 from cellctl.scan.result import ResultFile
+from cellctl.scan.spec import JobSpec
 from cellctl.service.api import ResultSummary
 
 log = logging.getLogger("cellctl.service.worker")
 #: a cancelled job that has not ended this long after the cancel has its worker killed (a scan
 #: checks its cancel between moves and stops the arm mid-move; the cut's planning takes seconds)
 KILL_AFTER_S = 30.0
-
-
-@dataclass(frozen=True)
-class JobSpec:
-    """Everything the worker needs to run one job (it is pickled to the new process)."""
-
-    cfg: CellConfig
-    cfg_path: Path
-    profile: str  # service.job_profile: "scan" (the whole job) or "initial_view" (load tests)
-    scene: str
-    planner: str
-    run_dir: Path
-    seed: int | None = None
-    noise: bool = True
-    max_steps: int | None = None
-    dry_run_cut: bool = False
-    arm_host: str | None = None  # fcisim: the service's own franky-sim
 
 
 @dataclass
@@ -172,7 +155,7 @@ def _worker_main(jobs, msgs, stop, parent_pid: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     import cellctl.scan.initial_view  # noqa: F401 - the heavy imports, before the first job
-    from cellctl.scan.run import run_job
+    from cellctl.scan.run import Hooks, run_job
 
     while True:
         try:
@@ -187,10 +170,7 @@ def _worker_main(jobs, msgs, stop, parent_pid: int) -> None:
                                 "drawing_points": r.drawing_points}))
 
         try:
-            result = run_job(spec.profile, spec.cfg, spec.cfg_path, spec.scene, spec.planner, run_dir=spec.run_dir,
-                             seed=spec.seed, noise=spec.noise, max_steps=spec.max_steps, dry_run_cut=spec.dry_run_cut,
-                             cancel=stop, on_step=on_step, on_phase=lambda p: msgs.send(("phase", p)),
-                             arm_host=spec.arm_host)
+            result, _ = run_job(spec, Hooks(cancel=stop, on_step=on_step, on_phase=lambda p: msgs.send(("phase", p))))
             msgs.send(("result", result.summary().model_dump_json(), result.error))
         except Exception as e:  # noqa: BLE001 - a failed job: say why, keep what was written
             summary = summary_from_file(spec.run_dir / "result.json")
