@@ -156,3 +156,19 @@ def test_the_sim_config_has_a_service_section():
 
     cfg, _ = load_cell_config(None)
     assert cfg.service.listen and cfg.service.queue_max >= 1 and cfg.service.job_timeout_s > 0
+
+
+@pytest.mark.parametrize("raw, what", [
+    (b'{"scene": "../../etc/passwd.yaml", "scene": "t_piece"}', "given twice"),
+    (b'{"scene": "t_piece", "scene": "t_piece"}', "given twice"),
+    (b'{"scene": "t_piece", "requested_by": "\\ud800"}', "surrogate"),
+    (b'{"scene": "t_piece", "x\\udfff": 1}', "surrogate"),
+    (b'{"scene": ' + b"[" * 40 + b"]" * 40 + b"}", "nested deeper"),
+    (b'{"scene": ' + b"[" * 5000 + b"]" * 5000 + b"}", "recursion"),
+])
+def test_json_that_could_mean_two_things_is_bad_json(raw, what):
+    """One code per class of malformed input, decided before any model sees it: a duplicate key (the
+    last would win in one parser, the first in another), a lone surrogate, nesting past MAX_JSON_DEPTH."""
+    with pytest.raises(ApiError) as e:
+        parse_payload(raw, ScanDrawingRequest)
+    assert e.value.code == "bad_json" and what in e.value.message, e.value.message

@@ -535,3 +535,20 @@ def test_make_users_makes_fresh_private_credentials(tmp_path):
     assert not set(runs[0]) & set(runs[1])
     script = (ROOT / "deploy/make-users.sh").read_text()
     assert "/dev/urandom" in script and find_secrets(ROOT, ["deploy/make-users.sh"]) == []
+
+
+def test_a_line_forged_in_a_key_is_escaped_in_the_log(scene_cell):
+    """A key, like every string a client sends, reaches the cell's log on one line: a newline or a NUL
+    in it is written as its escape, so it cannot forge a line of the log (nor of journald's)."""
+    svc, _ = scene_cell
+    forged = "2026-12-01 16:40:00,000 INFO job 20261201T164000Z-abcdef done"
+    with svc.client() as c:
+        replies = list(c.session.get(f"cell/sim-1/jobs/x\n{forged}\x00", timeout=REPLY_S))
+    assert len(replies) == 1 and replies[0].err is not None  # not_found, as for any unknown job
+    assert json.loads(replies[0].err.payload.to_bytes())["code"] == "not_found"
+    deadline = time.monotonic() + 10.0
+    while "x\\n" + forged not in svc.log.read_text() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    log = svc.log.read_text()
+    assert "x\\n" + forged + "\\x00" in log, log[-2000:]
+    assert not any(line.startswith(forged) for line in log.splitlines())

@@ -23,6 +23,7 @@ MAX_PAYLOAD_BYTES = 64 * 1024  # a request is a few hundred bytes; anything near
 # however large, makes the cell buffer more (Zenoh's default is 1 GiB)
 MAX_MESSAGE_BYTES = 1024 * 1024
 LIST_LIMIT_MAX = 200
+MAX_JSON_DEPTH = 32  # nesting of a payload's arrays and objects; a request needs 2
 
 CELL_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 # "<UTC time>-<random>": sorts by creation, is one key-expression chunk, cannot collide with "submit"
@@ -45,7 +46,8 @@ ErrorCode = Literal["bad_json", "invalid_request", "payload_too_large", "unsuppo
                     "cell_not_ready", "not_found", "not_cancellable", "shutting_down", "internal_error"]
 
 ERROR_CODES: dict[str, str] = {
-    "bad_json": "the payload is empty, not UTF-8, or not JSON",
+    "bad_json": f"the payload is empty, not UTF-8, or not strict JSON: a syntax error, a key given twice, nesting "
+                f"deeper than {MAX_JSON_DEPTH} levels, a lone UTF-16 surrogate escape, NaN or Infinity",
     "invalid_request": "JSON, but not a valid message: missing or unknown field, wrong type, value out of range, "
                        "unknown planner or scene, wildcard or unknown key",
     "payload_too_large": f"the payload is over {MAX_PAYLOAD_BYTES} bytes",
@@ -271,7 +273,9 @@ M = TypeVar("M", bound=BaseModel)
 
 def parse_payload(raw: bytes | None, model: type[M], *, required: bool = True) -> M:
     """bytes -> model, or ApiError with a stable code: bad_json, payload_too_large,
-    unsupported_schema_version, invalid_request."""
+    unsupported_schema_version, invalid_request. Strict JSON, decided here and not by whichever parser
+    meets the defect first: a key given twice, nesting deeper than MAX_JSON_DEPTH, a lone UTF-16
+    surrogate (``"\\ud800"``), NaN or Infinity are all bad_json."""
     if not raw:
         if required:
             raise ApiError("bad_json", "empty payload: expected a JSON object")
@@ -283,7 +287,8 @@ def parse_payload(raw: bytes | None, model: type[M], *, required: bool = True) -
     except UnicodeDecodeError as e:
         raise ApiError("bad_json", f"payload is not UTF-8 (invalid byte at offset {e.start})") from None
     try:
-        obj = json.loads(text, parse_constant=_no_constant)
+        obj = json.loads(text, parse_constant=_no_constant, object_pairs_hook=_unique_keys)
+        _strict(obj, MAX_JSON_DEPTH)
     except json.JSONDecodeError as e:
         raise ApiError("bad_json", f"payload is not JSON: {e.msg} at line {e.lineno} column {e.colno}") from None
     except (ValueError, RecursionError) as e:
@@ -309,6 +314,32 @@ def invalid(e: ValidationError, prefix: str = "invalid request") -> ApiError:
 
 def _no_constant(name: str) -> Any:
     raise ValueError(f"{name} is not valid JSON")
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict:
+    keys = [k for k, _ in pairs]
+    if len(set(keys)) != len(keys):
+        twice = next(k for i, k in enumerate(keys) if k in keys[:i])
+        raise ValueError(f"key {json.dumps(twice)[:80]} is given twice (which one counts is not defined)")
+    return dict(pairs)
+
+
+def _strict(v: Any, depth: int) -> None:
+    """Nesting within ``depth`` levels, and every string (keys too) valid Unicode (a lone surrogate
+    escape is legal JSON syntax for a character no UTF-8 text can hold)."""
+    if isinstance(v, (dict, list)):
+        if depth == 0:
+            raise ValueError(f"nested deeper than {MAX_JSON_DEPTH} levels")
+        for x in (v.items() if isinstance(v, dict) else v):
+            if isinstance(x, tuple):
+                _strict(x[0], depth)
+                x = x[1]
+            _strict(x, depth - 1)
+    elif isinstance(v, str):
+        try:
+            v.encode("utf-8")
+        except UnicodeEncodeError:
+            raise ValueError("a string holds a lone UTF-16 surrogate (\\ud800-\\udfff)") from None
 
 
 def dumps(model: BaseModel) -> bytes:

@@ -27,6 +27,7 @@ import zenoh
 
 from cellctl.config import CellConfig, ServiceConfig
 from cellctl.scan.modes import MODES
+from cellctl.service import logs
 from cellctl.service.api import (MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, ApiError, Artifacts, CancelReply, CancelRequest,
                                  CellStatus, JobList, Keys, ListJobsRequest, ResultSummary,
                                  ScanDrawingRequest, SubmitReply, dumps, parse_payload)
@@ -501,7 +502,7 @@ def serve(cfg: CellConfig, cfg_path: Path, data_dir: str | None = None, *, liste
           connect: list[str] | None = None) -> int:
     """Run until SIGINT/SIGTERM; the running job is cancelled (interrupted) and the Zenoh session
     closed on every way out."""
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s %(levelname)s %(message)s")
+    logs.setup()
     stop = threading.Event()
 
     def on_signal(signum, _frame):

@@ -17,7 +17,6 @@ import logging
 import multiprocessing as mp
 import os
 import signal
-import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -26,6 +25,7 @@ from typing import Callable
 
 from cellctl.scan.result import ResultFile
 from cellctl.scan.spec import JobSpec
+from cellctl.service import logs
 from cellctl.service.api import ResultSummary
 
 log = logging.getLogger("cellctl.service.worker")
@@ -149,7 +149,7 @@ def _worker_main(jobs, msgs, stop, parent_pid: int) -> None:
     """The worker process: run each job it is sent, report each step and phase, then the result;
     None ends it."""
     _die_with(parent_pid)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s %(levelname)s %(message)s")
+    logs.setup()
     # A Ctrl-C in the terminal reaches the whole process group, and systemd stops every process of
     # the unit: the service decides how its job ends, so here both only ask the job to stop.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
