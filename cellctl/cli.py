@@ -93,11 +93,14 @@ def _submit(client, args: argparse.Namespace) -> int:
         req["max_steps"] = args.max_steps
     if args.seed is not None:
         req["seed"] = args.seed
+    if args.request_id is not None:
+        req["request_id"] = args.request_id
     if not args.wait:
         reply = client.submit(req)
         print(reply.job_id)
-        print(f"queued at position {reply.queue_position}; follow it with: cellctl jobs show {reply.job_id} "
-              f"--cell {args.cell}", file=sys.stderr)
+        where = (f"already submitted with this request id: {reply.state}" if reply.duplicate
+                 else f"queued at position {reply.queue_position}")
+        print(f"{where}; follow it with: cellctl jobs show {reply.job_id} --cell {args.cell}", file=sys.stderr)
         return 0
     bar = _ProgressBar(sys.stderr)
     reply = client.submit(req, on_event=bar)
@@ -309,6 +312,10 @@ def build_parser() -> argparse.ArgumentParser:
     sd.add_argument("--seed", type=int, default=None)
     sd.add_argument("--no-noise", action="store_true")
     sd.add_argument("--dry-run-cut", action="store_true")
+    sd.add_argument("--request-id", default=None, metavar="KEY",
+                    help="your key for this job (8-64 of A-Z a-z 0-9 _ . : -): the same command run again with it "
+                         "gets the same job back instead of a second one (default: a new random key, retried on "
+                         "a lost reply)")
     sd.add_argument("--wait", action="store_true", help="follow the job (progress on stderr) and print its result")
     sd.add_argument("--timeout", type=float, default=3600.0, metavar="S", help="with --wait: give up after S s")
     sd.set_defaults(func=_submit)

@@ -30,7 +30,7 @@ def test_minimal_request_gets_the_defaults():
         (1, "scan_drawing", "gnbv", None, None, True, False)
     full = {"schema_version": 1, "kind": "scan_drawing", "scene": "configs/scenes/example_plate.yaml",
             "planner": "global", "max_steps": 200, "seed": 7, "noise": False, "dry_run_cut": True,
-            "requested_by": "tablet-2"}
+            "requested_by": "tablet-2", "request_id": "tablet-2:0001"}
     assert parse_payload(json.dumps(full).encode(), ScanDrawingRequest).model_dump() == full
 
 

@@ -14,6 +14,7 @@ import subprocess
 import sys
 import threading
 import time
+import uuid
 from pathlib import Path
 
 import pytest
@@ -212,6 +213,33 @@ def test_queue_full_then_cancel_queued_and_running(cell):
         assert [j.job_id for j in listed.jobs][:2] == [queued.job_id, running]
         assert c.jobs(state="cancelled").total >= 2
         assert c.status().queue_length == 0
+
+
+def test_a_submit_sent_again_with_its_request_id_is_one_job(cell):
+    """A tablet whose submit timed out cannot know whether the job was queued: it sends the same request,
+    request_id and all, again and gets the one job back (the documented retry, docs/API.md)."""
+    req = {**SHORT, "request_id": f"tablet-2:{uuid.uuid4()}"}
+    with cell.client(REPLY_S) as c:
+        before = c.status().jobs_total
+        lost = list(c.session.get(c.keys.submit, payload=json.dumps(req).encode(), timeout=0.001))
+        assert all(r.ok is None for r in lost)  # the client gave up: at most Zenoh's own "Timeout" error reply
+        deadline = time.monotonic() + REPLY_S
+        while c.status().jobs_total == before and time.monotonic() < deadline:  # the cell queued it anyway
+            time.sleep(0.05)
+        newest = c.jobs(limit=1).jobs[0].job_id
+        again = c.submit(req)
+        assert again.duplicate and again.job_id == newest and c.status().jobs_total == before + 1
+        assert c.job(newest).request.request_id == req["request_id"]
+        with pytest.raises(CellError) as e:  # the same key for another job is a client bug, said so
+            c.submit({**req, "max_steps": 3})
+        assert e.value.code == "invalid_request" and [d["loc"] for d in e.value.details] == ["request_id"]
+        rec = c.wait(newest, JOB_S)
+        late = c.submit(req)  # long after: still that job, now ended
+        assert (late.job_id, late.state, late.queue_position, late.duplicate) == (newest, rec.state, None, True)
+        auto = c.submit(SHORT)  # the client's own key, so its retries are safe too
+        assert not auto.duplicate and c.job(auto.job_id).request.request_id
+        assert c.status().jobs_total == before + 2
+        c.wait(auto.job_id, JOB_S)
 
 
 def test_cli_status_and_clear_no_reply(cell):

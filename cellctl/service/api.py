@@ -26,6 +26,7 @@ LIST_LIMIT_MAX = 200
 MAX_JSON_DEPTH = 32  # nesting of a payload's arrays and objects; a request needs 2
 
 CELL_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+REQUEST_ID_PATTERN = r"^[A-Za-z0-9_.:-]{8,64}$"
 # "<UTC time>-<random>": sorts by creation, is one key-expression chunk, cannot collide with "submit"
 JOB_ID_PATTERN = r"^[0-9]{8}T[0-9]{6}Z-[0-9a-f]{6}$"
 # a built-in scene name, or a scene .yaml path on the cell controller (twin only; the service confines it to
@@ -110,6 +111,12 @@ class ScanDrawingRequest(ApiModel):
     dry_run_cut: bool = Field(False, description="twin: run the cutting path with the torch off and measure the tip")
     requested_by: str | None = Field(None, pattern=r"^[\w .@-]{1,64}$", max_length=64,
                                      description="operator or tablet name, kept in the job record")
+    request_id: str | None = Field(None, pattern=REQUEST_ID_PATTERN, max_length=64,
+                                   description="the client's key for this job (8-64 of A-Z a-z 0-9 _ . : -, e.g. a "
+                                               "UUID), kept with the job: a submit whose request_id the cell already "
+                                               "holds creates nothing and gets that job back (`duplicate: true`), so "
+                                               "a submit whose reply was lost can be sent again safely; the same "
+                                               "request_id with a different request is `invalid_request`")
 
 
 class ListJobsRequest(ApiModel):
@@ -144,8 +151,10 @@ class ErrorReply(ApiModel):
 class SubmitReply(ApiModel):
     schema_version: Literal[1] = SCHEMA_VERSION
     job_id: JobId
-    state: Literal["queued"] = "queued"
-    queue_position: int = Field(ge=1, description="1: next to run")
+    state: JobState = Field("queued", description="queued for a new job; a duplicate's job may have moved on")
+    queue_position: int | None = Field(None, ge=1, description="1: next to run; null once the job has left the queue")
+    duplicate: bool = Field(False, description="true: the request_id was already submitted, job_id is that job "
+                                               "and nothing new was queued")
 
 
 class Transition(ApiModel):

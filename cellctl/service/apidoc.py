@@ -24,7 +24,7 @@ T0 = "2025-03-14T10:15:00.120Z"
 def examples() -> dict[str, BaseModel]:
     """Fixed example messages (no clock, no randomness: the document must be reproducible)."""
     req = ScanDrawingRequest(scene="smooth_cylinder", planner="gnbv", max_steps=12, noise=True,
-                             requested_by="tablet-2")
+                             requested_by="tablet-2", request_id="tablet-2:5f0c1d7e-9a41-4e0b-8f7a-3c2b1a0d9e8f")
     result = ResultSummary(scene="smooth_cylinder", planner="gnbv", steps=5, terminated_by="quality",
                            coverage_percent=97.9, coverage_hit=238, coverage_total=243, planning_s=5.61, step_s=1.4,
                            capture_s=1.3, motion_planning_s=0.42, motion_s=9.8, displacement_m=0.61,
@@ -39,6 +39,7 @@ def examples() -> dict[str, BaseModel]:
     return {
         "request": req,
         "submit_reply": SubmitReply(job_id=J, queue_position=1),
+        "submit_again": SubmitReply(job_id=J, state="running", duplicate=True),
         "error_invalid": ErrorReply(code="invalid_request", message="invalid request: planner: Input should be "
                                     "'gnbv', 'cnbv', 'enpv' or 'global'",
                                     details=[ErrorDetail(loc="planner", msg="Input should be 'gnbv', 'cnbv', 'enpv' "
@@ -217,6 +218,25 @@ A cell whose arm or camera does not answer (`ready: false` in the status) refuse
 
 To follow a job from its first event, subscribe to `{k}/jobs/*/events` **before** submitting and keep the
 events whose `job_id` is the one in the reply (`CellClient.submit(request, on_event=...)` does this).
+
+#### Timeouts and retries
+
+A query that gets no reply within the client's timeout ends with **Zenoh's own error reply**: its payload
+is the 7 bytes `Timeout` (not JSON, not an ErrorReply; some Zenoh versions end the query with no reply
+at all). A client must treat both as "no answer", never parse them as an ErrorReply. For reads
+(`status`, a job, the list) just ask again. For a submit the job may have been queued although the reply
+was lost: put a **`request_id`** of your own in every submit (8-64 characters of `A-Z a-z 0-9 _ . : -`,
+e.g. `<tablet>:<uuid4>`, one per job the operator asked for) and, on a timeout, send the **same request,
+request_id and all**, again. The cell keeps each job's request_id with it: a submit whose request_id it
+already holds queues nothing and replies with that job, whatever became of it, and `duplicate: true`:
+
+{_json(ex["submit_again"])}
+
+The same request_id with a different request is `invalid_request` (detail `loc: request_id`). A tablet
+should wait at least 5 s for a submit's reply (the cell answers in milliseconds; 5 s covers a busy router
+or a Wi-Fi roam), then retry 2-3 times with a growing pause; `CellClient.submit` adds a request_id and
+retries 3 times by itself. If there is still no reply, show the operator that the cell is unreachable and
+keep the request (with its request_id) to send once the cell answers again.
 
 ### A job: `{k}/jobs/<job_id>`
 

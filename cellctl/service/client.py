@@ -11,6 +11,7 @@ import logging
 import re
 import threading
 import time
+import uuid
 from typing import Callable, TypeVar
 
 import zenoh
@@ -119,17 +120,25 @@ class CellClient:
         return self._query(self.keys.status, CellStatus, timeout_s=timeout_s)
 
     def submit(self, request: ScanDrawingRequest | dict | bytes,
-               on_event: Callable[[JobEvent], None] | None = None) -> SubmitReply:
+               on_event: Callable[[JobEvent], None] | None = None, *, attempts: int = 3) -> SubmitReply:
         """Queue a job. With ``on_event`` the job's events are delivered from the very first one
-        ("queued"): the subscription is made before the submit, so none is missed."""
-        if isinstance(request, dict):
-            payload = json.dumps(request).encode()
-        elif isinstance(request, bytes):
-            payload = request
+        ("queued"): the subscription is made before the submit, so none is missed.
+
+        A request without a ``request_id`` gets one (a random UUID), so a submit whose reply is lost
+        is sent again, up to ``attempts`` times, without queueing the job twice: the cell answers a
+        known request_id with the job it made (``duplicate``). Raw bytes are sent once, as they are."""
+        if isinstance(request, bytes):
+            payload, attempts = request, 1
         else:
-            payload = dumps(request)
+            if isinstance(request, dict):
+                request = request if "request_id" in request else {**request, "request_id": uuid.uuid4().hex}
+                payload = json.dumps(request).encode()
+            else:
+                if request.request_id is None:
+                    request = request.model_copy(update={"request_id": uuid.uuid4().hex})
+                payload = dumps(request)
         if on_event is None:
-            return self._query(self.keys.submit, SubmitReply, payload)
+            return self._submit(payload, attempts)
         self._reap()
         buffered: dict[str, list[JobEvent]] = {}
         target: list[str] = []
@@ -145,7 +154,7 @@ class CellClient:
 
         sub = self._subscribe(self.keys.all_events, deliver)
         try:
-            reply = self._query(self.keys.submit, SubmitReply, payload)
+            reply = self._submit(payload, attempts)
         except BaseException:
             sub.close()
             raise
@@ -157,6 +166,18 @@ class CellClient:
                 _call(on_event, ev)
             buffered.clear()
         return reply
+
+    def _submit(self, payload: bytes, attempts: int) -> SubmitReply:
+        attempt = 1
+        while True:
+            try:
+                return self._query(self.keys.submit, SubmitReply, payload)
+            except NoReply:
+                if attempt >= attempts:
+                    raise
+                log.warning("no reply to submit (attempt %d of %d); sending it again with the same request_id",
+                            attempt, attempts)
+                attempt += 1
 
     def _reap(self) -> None:
         """Drop the subscriptions of submitted jobs that have ended (not from inside their callback)."""

@@ -290,8 +290,10 @@ class CellService:
                           started_at=self.started_at, uptime_s=round(time.monotonic() - self._t0, 3))
 
     def submit(self, req: ScanDrawingRequest) -> SubmitReply:
-        self._check_scene(req.scene)
-        with self._cv:
+        with self._cv:  # the key's lookup and the job's creation under one lock: one key, one job
+            if req.request_id is not None and (known := self.store.by_request_id(req.request_id)) is not None:
+                return self._resubmitted(req, *known)  # before the checks: the job was accepted already
+            self._check_scene(req.scene)
             if not self._accepting:
                 raise ApiError("shutting_down", "the service is stopping and takes no new jobs")
             rd = self.devices.readiness()
@@ -314,6 +316,16 @@ class CellService:
             self._cv.notify()
         log.info("job %s queued (%s, %s, position %d)", job_id, req.scene, req.planner, position)
         return SubmitReply(job_id=job_id, queue_position=position)
+
+    def _resubmitted(self, req: ScanDrawingRequest, job_id: str, first: ScanDrawingRequest, state: str) -> SubmitReply:
+        """A submit whose request_id the cell holds: that job, whatever became of it (called under the lock)."""
+        if req != first:
+            raise ApiError("invalid_request", f"request_id {req.request_id!r} was used for job {job_id} with a "
+                           f"different request; a new job needs a new request_id",
+                           [_detail("request_id", "already used for a different request")])
+        position = self._queue.index(job_id) + 1 if job_id in self._queue else None
+        log.info("job %s submitted again (request_id %s): %s", job_id, req.request_id, state)
+        return SubmitReply(job_id=job_id, state=state, queue_position=position, duplicate=True)
 
     def job(self, job_id: str):
         rec = self.store.get(job_id)

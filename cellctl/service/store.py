@@ -42,6 +42,9 @@ CREATE TABLE IF NOT EXISTS jobs (
     artifacts TEXT                                 -- Artifacts JSON
 );
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state);
+-- a client's idempotency key names one job at most (a store written before keys existed gains the index)
+CREATE UNIQUE INDEX IF NOT EXISTS jobs_request_id ON jobs(json_extract(request, '$.request_id'))
+    WHERE json_extract(request, '$.request_id') IS NOT NULL;
 CREATE TABLE IF NOT EXISTS transitions (
     job_id TEXT NOT NULL REFERENCES jobs(job_id),
     n INTEGER NOT NULL,
@@ -95,6 +98,15 @@ class JobStore:
                              "VALUES (?, ?, ?, 'queued', ?, ?, ?)",
                              (job_id, cell_id, request.model_dump_json(), at, at, arts))
             self._db.execute("INSERT INTO transitions VALUES (?, 0, 'queued', ?, NULL)", (job_id, at))
+
+    def by_request_id(self, request_id: str) -> tuple[str, ScanDrawingRequest, str] | None:
+        """(job id, request, state) of the job submitted with this idempotency key, if any."""
+        with self._lock:
+            row = self._db.execute("SELECT job_id, request, state FROM jobs WHERE json_extract(request, "
+                                   "'$.request_id') = ?", (request_id,)).fetchone()
+        if row is None:
+            return None
+        return row[0], ScanDrawingRequest.model_validate_json(row[1]), row[2]
 
     def transition(self, job_id: str, state: str, note: str | None = None, *, result: ResultSummary | None = None,
                    error: str | None = None, artifacts: Artifacts | None = None) -> str:
