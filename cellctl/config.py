@@ -59,6 +59,10 @@ class ServiceConfig(BaseModel):
         description="a job may name a scene .yaml only inside these directories, symlinks resolved (relative to "
         "this file; default: scenes/ beside it; [] = built-in scenes only)")
     queue_max: int = Field(8, ge=1, le=1000, description="jobs waiting (the running one not counted)")
+    requeue_after_restart: bool = Field(True, description="jobs still queued when the service stopped or died "
+                                        "run after it restarts, in their order (the one that was running ends "
+                                        "interrupted); false: they end interrupted too, for the operator to submit "
+                                        "again")
     job_timeout_s: float = Field(900.0, gt=0, le=86400, description="a job running longer is cancelled and failed")
     shutdown_grace_s: float = Field(30.0, gt=0, le=600, description="on SIGTERM, wait this long for the running "
                                     "job to stop")

@@ -336,7 +336,7 @@ def test_service_fails_a_job_on_a_reflex_keeps_its_artifacts_and_runs_the_next(t
 def test_service_killed_mid_job_restarts_then_a_missing_camera_fails_a_job_and_the_next_runs(tmp_path):
     """One service life, its camera gone from capture 3 on in every job.
     1. SIGKILL during a long job (extends tests/test_service.py::
-       test_a_job_running_when_the_service_dies_is_interrupted): after the restart the job is
+       test_a_job_running_when_the_service_dies_is_interrupted_and_the_queued_ones_run_after_it): after the restart the job is
        `interrupted`, its folder and recording (readable up to the kill) are kept and listed.
     2. A four-view job loses its camera at view 3: `failed` with the reason, artifacts kept, arm stopped.
     3. A two-view job runs to done."""

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+from cellctl.service.api import JobEvent
 from cellctl.service.client import CellClient, CellError, NoReply
 from cellctl.service.loopback import ROOT, ServiceProcess, free_port
 from cellctl.service.store import JobStore
@@ -107,21 +108,37 @@ def test_submit_events_result_survive_a_restart(tmp_path):
         svc.kill()
 
 
-def test_a_job_running_when_the_service_dies_is_interrupted(tmp_path):
+def test_a_job_running_when_the_service_dies_is_interrupted_and_the_queued_ones_run_after_it(tmp_path):
+    """SIGKILL with one job running and two queued: at the restart the running one is interrupted (what
+    it wrote kept and listed), the queued ones keep their place and run to the end, each with its events;
+    no record points at a folder that does not exist."""
     svc = ServiceProcess(tmp_path).start(START_S)
     try:
         with svc.client(REPLY_S) as c:
             events = Events()
             killed = c.submit(LONG, on_event=events).job_id
+            waiting = [c.submit(SHORT).job_id for _ in range(2)]
             events.wait_for(lambda e: e.step == 0, JOB_S)
+            assert all(c.job(j).artifacts is None for j in waiting)  # no folder yet: none named
         svc.proc.send_signal(signal.SIGKILL)
         svc.proc.wait(EXIT_S)
         svc.start(START_S)
         with svc.client(REPLY_S) as c:
+            after = Events()
+            sub = c.session.declare_subscriber(  # noqa: F841 - kept while the jobs run
+                c.keys.all_events, lambda sample: after(JobEvent.model_validate_json(sample.payload.to_bytes())))
             rec = c.job(killed)
             assert rec.state == "interrupted" and "interrupted" in rec.error
             assert [t.state for t in rec.transitions] == ["queued", "running", "interrupted"]
             assert rec.progress.phase == "interrupted" and rec.progress.seq > events.items[-1].seq
+            assert "scan.rrd" in rec.artifacts.files and Path(rec.artifacts.dir).is_dir()
+            for job_id in waiting:
+                done = c.wait(job_id, JOB_S)
+                assert done.state == "done" and [t.state for t in done.transitions] == ["queued", "running", "done"]
+                assert "result.json" in done.artifacts.files and Path(done.artifacts.dir).is_dir()
+                after.wait_for(lambda e, j=job_id: e.job_id == j and e.phase == "done", JOB_S)
+                seqs = [e.seq for e in after.items if e.job_id == job_id]
+                assert seqs == list(range(seqs[0], seqs[0] + len(seqs))) and seqs[-1] == done.progress.seq, seqs
             # SIGTERM while a job runs: the scan stops, its partial result is kept, the process exits
             events = Events()
             stopped = c.submit(LONG, on_event=events).job_id

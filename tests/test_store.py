@@ -38,7 +38,8 @@ def test_a_job_lives_through_its_states_and_a_reopen(tmp_path):
     s.transition(_jid(1), "running")
     s.set_progress(_jid(1), Progress(phase="scanning", seq=2, step=1, max_steps=2, coverage_percent=50.0,
                                      at="2025-01-01T00:00:02.000Z"))
-    s.transition(_jid(1), "done", result=_result(), artifacts=Artifacts(dir="d", files=["result.json"]))
+    (tmp_path / "d").mkdir()
+    s.transition(_jid(1), "done", result=_result(), artifacts=Artifacts(dir=str(tmp_path / "d"), files=["result.json"]))
     s.close()
     s = JobStore(path)
     rec = s.get(_jid(1))
@@ -78,17 +79,20 @@ def test_list_is_newest_first_bounded_and_filtered(store):
     assert store.count() == 5
 
 
-def test_unfinished_jobs_become_interrupted(store):
+def test_a_dead_services_running_jobs_are_interrupted_its_queued_ones_queue_again(store):
     for i, path in enumerate([[], ["running"], ["running", "cancelling"], ["running", "done"]]):
         store.create(_jid(i), "sim-1", REQ, "d")
         for st in path:
             store.transition(_jid(i), st)
-    ids = store.interrupt_unfinished("the service stopped before the job ended")
-    assert ids == [_jid(0), _jid(1), _jid(2)]
-    assert [store.state(_jid(i)) for i in range(4)] == ["interrupted"] * 3 + ["done"]
+    interrupted, queued = store.recover("the service stopped before the job ended")
+    assert interrupted == [_jid(1), _jid(2)] and queued == [_jid(0)]  # never started: it queues again
+    assert [store.state(_jid(i)) for i in range(4)] == ["queued", "interrupted", "interrupted", "done"]
     rec = store.get(_jid(1))
     assert rec.transitions[-1].note == "the service stopped before the job ended" and "interrupted" in rec.error
-    assert store.interrupt_unfinished("again") == []
+    assert rec.artifacts is None  # its folder "d" does not exist: no record points at a missing folder
+    assert store.recover("again") == ([], [_jid(0)])
+    assert store.recover("without requeue", requeue=False) == ([_jid(0)], [])
+    assert store.recover("once more") == ([], [])
 
 
 def test_threads_share_the_store(store):

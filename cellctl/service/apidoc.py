@@ -291,7 +291,8 @@ refused submit or a finished job; `not_ready_reason` then says what is missing:
 ## Job states
 
 `queued` → `running` → (`cancelling` →) `done` | `failed` | `cancelled` | `interrupted`; a queued job can
-go straight to `cancelled` or `interrupted`.
+go straight to `cancelled` (or `interrupted`, see below). A record's `artifacts` is absent until the job
+has a folder (it never names a folder that does not exist).
 
 - `done`: the scan ended by itself (quality, frontier, max_steps, ...); `result.cut` says what will be cut:
   `cut_fraction` of the drawing's length in `feasible_branches` cuts, the `gaps` left uncut with their
@@ -301,8 +302,14 @@ go straight to `cancelled` or `interrupted`.
 - `failed`: the scan failed (`error`), or ran longer than `service.job_timeout_s` (`error` starts with
   `timeout:`); the partial result is kept.
 - `cancelled`: by a cancel request; the partial result is kept.
-- `interrupted`: the service stopped (SIGTERM/SIGINT: the running job is stopped, its partial result
-  kept) or died (found `queued`/`running` at the next start). Never silently lost: resubmit it.
+- `interrupted`: the job was running when the service stopped (SIGTERM/SIGINT: the scan is stopped,
+  its partial result kept) or died (found running at the next start; what it wrote is kept and listed).
+  Never silently lost: resubmit it. Jobs still **queued** when the service stopped or died keep their
+  place and run after it restarts, each with a `queued` event saying so (`service.requeue_after_restart`,
+  on by default; off, they end `interrupted` too).
+- **After a restart** (the `{k}/alive` token goes and comes back) the events the restarted cell published
+  before your session reconnected are not sent again: read the records of the jobs you follow (the
+  record's `progress.seq` is the last event's `seq`).
 
 ## Error codes
 

@@ -133,13 +133,15 @@ class CellService:
 
     # --- life cycle -------------------------------------------------------------------------------
     def start(self) -> None:
-        """Mark what a previous process left unfinished as interrupted, open the session, declare the
-        API, start the worker. On any failure the session is closed again."""
+        """Take over what a previous process left unfinished (the job it ran is interrupted, the queued
+        ones queue again), open the session, declare the API, start the worker. On any failure the
+        session is closed again."""
         if self.scfg.job_profile != "scan" and not self.devices.mode.twin_arm:  # a load-test job on a real arm: never
             raise ServiceError(f"service.job_profile {self.scfg.job_profile} is for load tests in the twin; "
                                f"mode {self.cfg.mode} needs job_profile scan")
         self._lock_data_dir()
-        recovered = self.store.interrupt_unfinished("the service stopped before the job ended")
+        recovered, requeued = self.store.recover("the service stopped before the job ended",
+                                                 requeue=self.scfg.requeue_after_restart)
         try:
             self.devices.start()
         except BaseException:
@@ -156,6 +158,12 @@ class CellService:
                 self.events.continue_from(job_id, rec.progress.seq if rec and rec.progress else -1)
                 self.events.emit(job_id, "interrupted", "interrupted", message="the service stopped before the job "
                                  "ended")
+            for job_id in requeued:  # in their order, before any new submit
+                rec = self.store.get(job_id)
+                self.events.continue_from(job_id, rec.progress.seq if rec and rec.progress else -1)
+                self._queue.append(job_id)
+                self.events.emit(job_id, "queued", "queued", message=f"the service restarted; queued again at "
+                                 f"position {len(self._queue)}")
             self._worker = threading.Thread(target=self._work, name="cell-worker", daemon=True)
             self._worker.start()
             self.devices.watch()
@@ -167,6 +175,8 @@ class CellService:
             raise
         if recovered:
             log.warning("marked %d unfinished job(s) interrupted: %s", len(recovered), ", ".join(recovered))
+        if requeued:
+            log.warning("queued again after a restart: %s", ", ".join(requeued))
 
     def _lock_data_dir(self) -> None:
         """One service per data dir: a second one would mark the first one's running job interrupted."""
@@ -184,8 +194,9 @@ class CellService:
         self._lock_file = f
 
     def stop(self, grace_s: float | None = None) -> None:
-        """Take no more jobs, interrupt the queued ones, cancel the running one and wait for it to
-        write its partial result (at most ``grace_s``)."""
+        """Take no more jobs, cancel the running one and wait for it to write its partial result (at
+        most ``grace_s``). The queued ones stay queued for the next start (``service.requeue_after_restart``),
+        else they are interrupted."""
         grace_s = self.scfg.shutdown_grace_s if grace_s is None else grace_s
         with self._cv:
             self._accepting = False
@@ -197,8 +208,11 @@ class CellService:
             if running is not None:
                 running.request("shutdown")
             self._cv.notify_all()
-        for job_id in queued:
-            self._finish(job_id, "interrupted", "the service was stopped before the job started")
+        if queued and self.scfg.requeue_after_restart:
+            log.info("%d queued job(s) stay queued for the next start: %s", len(queued), ", ".join(queued))
+        elif queued:
+            for job_id in queued:
+                self._finish(job_id, "interrupted", "the service was stopped before the job started")
         if self._worker is not None:
             self._worker.join(grace_s)
             if self._worker.is_alive() and running is not None:

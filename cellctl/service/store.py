@@ -141,14 +141,21 @@ class JobStore:
             self._db.execute("UPDATE jobs SET progress=?, updated_at=? WHERE job_id=?",
                              (progress.model_dump_json(), progress.at, job_id))
 
-    def interrupt_unfinished(self, note: str) -> list[str]:
-        """At start: every job still queued/running/cancelling belonged to a service that died."""
+    def recover(self, note: str, *, requeue: bool = True) -> tuple[list[str], list[str]]:
+        """At start, the jobs a service that died left unfinished: (interrupted, still queued), oldest
+        first. A job that was running or cancelling is interrupted, what it wrote kept and listed; a
+        queued one never started and stays queued (``requeue``), else it is interrupted too."""
         with self._lock:
-            rows = self._db.execute("SELECT job_id, artifacts FROM jobs WHERE state IN ('queued', 'running', "
-                                    "'cancelling') ORDER BY id").fetchall()
-        for job_id, arts in rows:  # what the dead job wrote so far is kept, and listed
+            rows = self._db.execute("SELECT job_id, state, artifacts FROM jobs WHERE state IN ('queued', "
+                                    "'running', 'cancelling') ORDER BY id").fetchall()
+        interrupted, queued = [], []
+        for job_id, state, arts in rows:
+            if state == "queued" and requeue:
+                queued.append(job_id)
+                continue
             self.transition(job_id, "interrupted", note, error=f"interrupted: {note}", artifacts=_on_disk(arts))
-        return [r[0] for r in rows]
+            interrupted.append(job_id)
+        return interrupted, queued
 
     # --- reads ------------------------------------------------------------------------------------
     def get(self, job_id: str) -> JobRecord | None:
@@ -167,7 +174,7 @@ class JobStore:
             progress=Progress.model_validate_json(prog) if prog else None,
             result=ResultSummary.model_validate_json(res) if res else None,
             error=err[:2000] if err else None,
-            artifacts=Artifacts.model_validate_json(arts) if arts else None)
+            artifacts=_existing(arts))
 
     def state(self, job_id: str) -> str | None:
         with self._lock:
@@ -199,6 +206,15 @@ def _first_line(text: str | None, n: int = 200) -> str | None:
         return None
     line = text.strip().splitlines()[0] if text.strip() else text
     return line if len(line) <= n else line[: n - 1] + "…"
+
+
+def _existing(artifacts_json: str | None) -> Artifacts | None:
+    """The record's artifacts as stored, if its folder exists (a job that never ran has none; a folder
+    removed later, e.g. by retention, is not pointed at)."""
+    if not artifacts_json:
+        return None
+    arts = Artifacts.model_validate_json(artifacts_json)
+    return arts if Path(arts.dir).is_dir() else None
 
 
 def _on_disk(artifacts_json: str | None) -> Artifacts | None:
