@@ -161,6 +161,24 @@ def _jobs_show(client, args: argparse.Namespace) -> int:
 
 
 @_remote
+def _jobs_fetch(client, args: argparse.Namespace) -> int:
+    listing = client.files(args.job_id)
+    names = [f.name for f in listing.files]
+    wanted = args.name or names
+    missing = [n for n in wanted if n not in names]
+    if missing:
+        print(f"cellctl jobs fetch: job {args.job_id} has no {', '.join(missing)}; it has {', '.join(names) or 'no files'}",
+              file=sys.stderr)
+        return 1
+    out = Path(args.out) / args.job_id
+    out.mkdir(parents=True, exist_ok=True)
+    for name in wanted:
+        info = client.fetch(args.job_id, name, out / name)
+        print(f"{out / name}  {info.size} bytes  sha256 {info.sha256}")
+    return 0
+
+
+@_remote
 def _jobs_cancel(client, args: argparse.Namespace) -> int:
     reply = client.cancel(args.job_id, args.reason)
     print(f"job {reply.job_id}: {reply.state}")
@@ -331,6 +349,14 @@ def build_parser() -> argparse.ArgumentParser:
     js.add_argument("job_id")
     _client_args(js)
     js.set_defaults(func=_jobs_show)
+    jf = jsub.add_parser("fetch", help="copy an ended job's files (the cut, the drawing, the recording, ...) "
+                                       "from the cell, each checked against its SHA-256")
+    jf.add_argument("job_id")
+    jf.add_argument("--out", default=".", metavar="DIR", help="into DIR/<job_id>/ (default: the current directory)")
+    jf.add_argument("--name", action="append", default=None, metavar="FILE",
+                    help="only this file (repeatable), e.g. --name cut_path.json; default: all of them")
+    _client_args(jf)
+    jf.set_defaults(func=_jobs_fetch)
     jc = jsub.add_parser("cancel", help="cancel a queued or running job")
     jc.add_argument("job_id")
     jc.add_argument("--reason", default=None)

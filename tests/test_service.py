@@ -250,6 +250,9 @@ def test_a_submit_sent_again_with_its_request_id_is_one_job(cell):
         with pytest.raises(CellError) as e:  # the same key for another job is a client bug, said so
             c.submit({**req, "max_steps": 3})
         assert e.value.code == "invalid_request" and [d["loc"] for d in e.value.details] == ["request_id"]
+        with pytest.raises(CellError) as e:  # its folder is still being written
+            c.files(newest)
+        assert e.value.code == "not_ended"
         rec = c.wait(newest, JOB_S)
         late = c.submit(req)  # long after: still that job, now ended
         assert (late.job_id, late.state, late.queue_position, late.duplicate) == (newest, rec.state, None, True)
@@ -257,6 +260,47 @@ def test_a_submit_sent_again_with_its_request_id_is_one_job(cell):
         assert not auto.duplicate and c.job(auto.job_id).request.request_id
         assert c.status().jobs_total == before + 2
         c.wait(auto.job_id, JOB_S)
+
+
+def test_an_ended_jobs_cut_and_recording_are_fetched_in_chunks_and_verified(cell, tmp_path):
+    """The cut is the product: the tablet gets it over the API, not as a folder on the cell's disk. Files
+    come in chunks (here 64 KiB, so the recording takes several), each reply under the message cap, and
+    the joined bytes match the whole file's SHA-256 and the file the job wrote."""
+    import base64
+    import hashlib
+
+    with cell.client(REPLY_S) as c:
+        rec = c.wait(c.submit(SHORT).job_id, JOB_S)
+        assert rec.state == "done"
+        listing = c.files(rec.job_id)
+        by_name = {f.name: f for f in listing.files}
+        assert {"cut_path.json", "cut_trajectory.npz", "drawing.ply", "scan.rrd", "result.json"} <= set(by_name)
+        assert [f.name for f in listing.files] == sorted(rec.artifacts.files)
+        folder = Path(rec.artifacts.dir)
+        for name in ("cut_path.json", "scan.rrd"):
+            got = c.fetch(rec.job_id, name, tmp_path / name, chunk=64 * 1024)
+            disk = (folder / name).read_bytes()
+            assert (tmp_path / name).read_bytes() == disk and got == by_name[name]
+            assert got.sha256 == hashlib.sha256(disk).hexdigest()
+        assert by_name["scan.rrd"].size > 3 * 64 * 1024  # several chunks
+        cut = json.loads((tmp_path / "cut_path.json").read_text())
+        assert cut["branches"] and all("poses" in b for b in cut["branches"])
+        k = c.keys
+        last = c._query(k.file(rec.job_id, "scan.rrd"), FileChunk,
+                        json.dumps({"offset": by_name["scan.rrd"].size - 10, "length": 100}).encode())
+        assert (last.length, last.eof) == (10, True) and base64.b64decode(last.data) == (folder / "scan.rrd").read_bytes()[-10:]
+        for name, code in [("no_such.bin", "not_found"), ("..", "invalid_request"), (".hidden", "invalid_request")]:
+            with pytest.raises(CellError) as e:
+                c._query(k.file(rec.job_id, name), FileChunk)
+            assert e.value.code == code, name
+        with pytest.raises(CellError) as e:
+            c._query(k.file(rec.job_id, "scan.rrd"), FileChunk, b'{"length": 600000}')  # over CHUNK_MAX
+        assert e.value.code == "invalid_request"
+    out = subprocess.run([sys.executable, "-m", "cellctl.cli", "jobs", "fetch", rec.job_id, "--out", str(tmp_path / "cli"),
+                          "--name", "cut_path.json", "--cell", "sim-1", "--connect", cell.endpoint],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "cli" / rec.job_id / "cut_path.json").read_bytes() == (folder / "cut_path.json").read_bytes()
 
 
 def test_cli_status_and_clear_no_reply(cell):

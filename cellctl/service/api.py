@@ -23,6 +23,9 @@ MAX_PAYLOAD_BYTES = 64 * 1024  # a request is a few hundred bytes; anything near
 # however large, makes the cell buffer more (Zenoh's default is 1 GiB)
 MAX_MESSAGE_BYTES = 1024 * 1024
 LIST_LIMIT_MAX = 200
+CHUNK_MAX = 512 * 1024  # a file chunk's bytes; base64 in JSON keeps its reply under the 1 MiB message cap
+CHUNK_DEFAULT = 256 * 1024
+FILE_NAME_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,99}$"  # a file of the job's folder, no path
 MAX_JSON_DEPTH = 32  # nesting of a payload's arrays and objects; a request needs 2
 
 CELL_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
@@ -44,7 +47,7 @@ JobState = Literal["queued", "running", "cancelling", "done", "failed", "cancell
 TERMINAL_STATES = frozenset({"done", "failed", "cancelled", "interrupted"})
 Phase = Literal["queued", "scanning", "planning-cut", "done", "failed", "cancelled", "interrupted"]
 ErrorCode = Literal["bad_json", "invalid_request", "payload_too_large", "unsupported_schema_version", "queue_full",
-                    "cell_not_ready", "not_found", "not_cancellable", "shutting_down", "internal_error"]
+                    "cell_not_ready", "not_found", "not_cancellable", "not_ended", "shutting_down", "internal_error"]
 
 ERROR_CODES: dict[str, str] = {
     "bad_json": f"the payload is empty, not UTF-8, or not strict JSON: a syntax error, a key given twice, nesting "
@@ -57,8 +60,9 @@ ERROR_CODES: dict[str, str] = {
     "cell_not_ready": "the arm or the camera is not ready (robot unreachable, FCI not active, no camera: the message "
                       "and the status's not_ready_reason say which); nothing was queued, submit again once the status "
                       "shows ready",
-    "not_found": "no job with this id",
+    "not_found": "no job with this id, or no file of that name in its folder",
     "not_cancellable": "the job already ended (done, failed, cancelled or interrupted)",
+    "not_ended": "the job's files are served once it has ended (its folder is still being written)",
     "shutting_down": "the service is stopping and takes no new jobs",
     "internal_error": "a bug in the service; the request was not carried out, the service keeps serving",
 }
@@ -86,6 +90,12 @@ class Keys:
 
     def events(self, job_id: str) -> str:
         return f"{self.jobs}/{job_id}/events"
+
+    def files(self, job_id: str) -> str:
+        return f"{self.jobs}/{job_id}/files"
+
+    def file(self, job_id: str, name: str) -> str:
+        return f"{self.jobs}/{job_id}/files/{name}"
 
 
 # --- messages -------------------------------------------------------------------------------------
@@ -132,6 +142,45 @@ class CancelRequest(ApiModel):
 
     schema_version: Literal[1] = SCHEMA_VERSION
     reason: str | None = Field(None, max_length=200, description="kept in the job's transitions")
+
+
+class FileInfo(ApiModel):
+    name: str = Field(pattern=FILE_NAME_PATTERN, description="e.g. cut_path.json; ask for it on "
+                      "`cell/<cell_id>/jobs/<job_id>/files/<name>`")
+    size: int = Field(ge=0, description="bytes")
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="of the whole file, hex")
+
+
+class FileList(ApiModel):
+    """Reply to ``cell/<cell_id>/jobs/<job_id>/files``: the files of an ended job's folder."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    job_id: JobId
+    files: list[FileInfo] = Field(max_length=100, description="by name")
+    chunk_max: int = Field(ge=1, description="the most bytes one chunk carries")
+
+
+class FileChunkRequest(ApiModel):
+    """Optional payload of a query on ``cell/<cell_id>/jobs/<job_id>/files/<name>`` (none: the first chunk)."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    offset: int = Field(0, ge=0, description="byte of the file to start at")
+    length: int = Field(CHUNK_DEFAULT, ge=1, le=CHUNK_MAX, description="bytes at most")
+
+
+class FileChunk(ApiModel):
+    """Reply to a file query: ``length`` bytes of the file from ``offset``, base64. Ask for the next
+    chunk at ``offset + length`` until ``eof``; check the joined bytes against ``sha256``."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    job_id: JobId
+    name: str = Field(pattern=FILE_NAME_PATTERN)
+    offset: int = Field(ge=0)
+    length: int = Field(ge=0, le=CHUNK_MAX, description="bytes in this chunk (0 at or past the end)")
+    size: int = Field(ge=0, description="of the whole file")
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="of the whole file, hex")
+    eof: bool = Field(description="this chunk reaches the end of the file")
+    data: str = Field(max_length=(CHUNK_MAX + 2) // 3 * 4, description="the bytes, base64 (RFC 4648, padded)")
 
 
 class ErrorDetail(ApiModel):

@@ -14,7 +14,7 @@ from pydantic import BaseModel
 from cellctl.service import api
 from cellctl.service.api import (ERROR_CODES, MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, SCHEMA_VERSION, Artifacts,
                                  CancelReply, CancelRequest, CellStatus, CutAccuracy, CutGap, CutPathSummary,
-                                 DryRunSummary, ErrorDetail, ErrorReply, JobBrief, JobEvent, JobList, JobRecord,
+                                 DryRunSummary, ErrorDetail, ErrorReply, FileChunk, FileChunkRequest, FileInfo, FileList, JobBrief, JobEvent, JobList, JobRecord,
                                  ListJobsRequest, Progress, ResultSummary, ScanDrawingRequest, SubmitReply, Transition)
 
 J = "20250314T101500Z-3f9a1c"  # example job id
@@ -40,6 +40,11 @@ def examples() -> dict[str, BaseModel]:
         "request": req,
         "submit_reply": SubmitReply(job_id=J, queue_position=1),
         "submit_again": SubmitReply(job_id=J, state="running", duplicate=True),
+        "file_list": FileList(job_id=J, chunk_max=api.CHUNK_MAX, files=[
+            FileInfo(name="cut_path.json", size=183214, sha256="5e0c" + "1" * 56 + "9a2f"),
+            FileInfo(name="scan.rrd", size=18260931, sha256="a41b" + "2" * 56 + "07c3")]),
+        "file_chunk": FileChunk(job_id=J, name="cut_path.json", offset=0, length=21, size=183214,
+                                sha256="5e0c" + "1" * 56 + "9a2f", eof=False, data="eyJzY2hlbWFfdmVyc2lvbiI6IDEs"),
         "error_invalid": ErrorReply(code="invalid_request", message="invalid request: planner: Input should be "
                                     "'gnbv', 'cnbv', 'enpv' or 'global'",
                                     details=[ErrorDetail(loc="planner", msg="Input should be 'gnbv', 'cnbv', 'enpv' "
@@ -138,7 +143,7 @@ def field_table(model: type[BaseModel]) -> str:
 
 MODELS: list[type[BaseModel]] = [ScanDrawingRequest, SubmitReply, ListJobsRequest, JobList, JobBrief, JobRecord,
                                  Transition, Progress, ResultSummary, CutPathSummary, CutGap, CutAccuracy,
-                                 DryRunSummary, Artifacts,
+                                 DryRunSummary, Artifacts, FileList, FileInfo, FileChunkRequest, FileChunk,
                                  CancelRequest, CancelReply, CellStatus, JobEvent, ErrorReply, ErrorDetail]
 
 
@@ -184,6 +189,8 @@ command line: `cellctl submit|jobs|status --cell <cell_id> --connect <endpoint>`
 | `{k}/jobs` | queryable | [ListJobsRequest](#listjobsrequest) (optional) | [JobList](#joblist), newest first |
 | `{k}/jobs/<job_id>` | queryable | none (ignored) | [JobRecord](#jobrecord) |
 | `{k}/jobs/<job_id>/cancel` | queryable | [CancelRequest](#cancelrequest) (optional) | [CancelReply](#cancelreply) |
+| `{k}/jobs/<job_id>/files` | queryable | none (ignored) | [FileList](#filelist) (an ended job) |
+| `{k}/jobs/<job_id>/files/<name>` | queryable | [FileChunkRequest](#filechunkrequest) (optional) | [FileChunk](#filechunk) |
 | `{k}/jobs/<job_id>/events` | publication | - | [JobEvent](#jobevent) samples |
 | `{k}/status` | queryable | none (ignored) | [CellStatus](#cellstatus) |
 | `{k}/alive` | liveliness token | - | - |
@@ -246,6 +253,36 @@ last progress, result summary, error, and the artifacts folder on the cell contr
 cut_trajectory.npz, scan.rrd, coverage.png, view0.png).
 
 {_json(ex["record"])}
+
+### The cut and the other files: `{k}/jobs/<job_id>/files`
+
+Once a job has ended, every file of its folder can be fetched: the cutting path `cut_path.json`
+(below), its joint trajectories `cut_trajectory.npz` (NumPy; per cut `branch<i>_<approach|cut|retract>_t`
+and `_q`), the drawing and surface clouds `drawing.ply`/`surface.ply`, the Rerun recording `scan.rrd`,
+`result.json` (the summary plus every step) and the pictures. Before the job ends: `not_ended`. List them:
+
+{_json(ex["file_list"])}
+
+then ask for each by name, chunk by chunk: a query on `{k}/jobs/<job_id>/files/<name>` with
+`{{"offset": 0, "length": {api.CHUNK_DEFAULT}}}` (at most `chunk_max` = {api.CHUNK_MAX} bytes per chunk; no payload: the first
+{api.CHUNK_DEFAULT} bytes) replies
+
+{_json(ex["file_chunk"])}
+
+Decode `data` (base64), append it, ask again at `offset + length` until `eof`, then check the SHA-256 of
+the joined bytes against `sha256` (the same in the listing and in every chunk: if it changes, start over).
+An unknown name is `not_found`; a name with a path or starting with `.` is `invalid_request`.
+`CellClient.fetch(job_id, name, path)` and `cellctl jobs fetch <job_id> [--name cut_path.json] [--out DIR]`
+do all of this.
+
+**`cut_path.json`** (robot base frame; metres, radians, seconds): `feasible`, `cut_fraction` of the
+drawing's `drawing_length_m` that the cuts cover, `gaps` (as in the summary, plus each gap's `points`
+and surface `normal`), and `branches`, the cuts in cutting order, each with `points` and `normals` (N×3),
+the torch tip `poses` (N×4×4, z into the metal), `times_s` and `speeds_mps` along the cut, the joint
+solution at every pose `q` and `qd` (N×7, null where none), the configurations to start and end from
+`approach_q`/`retract_q`, the durations of approach, cut and retract, `feasibility` per pose (`ok` or why
+not) and `feasible` for the whole cut (an approach, the cut and a retract are all collision-free and
+within the arm's limits). Cut only `feasible` branches.
 
 ### Job list: `{k}/jobs`
 

@@ -6,19 +6,23 @@ answered at all, so "no reply" means "the cell is down, or you may not ask this"
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import json
 import logging
 import re
 import threading
 import time
 import uuid
+from pathlib import Path
 from typing import Callable, TypeVar
 
 import zenoh
 from pydantic import BaseModel, ValidationError
 
-from cellctl.service.api import (TERMINAL_STATES, CancelReply, CancelRequest, CellStatus, ErrorReply, JobEvent,
-                                 JobList, JobRecord, Keys, ListJobsRequest, ScanDrawingRequest, SubmitReply, dumps)
+from cellctl.service.api import (CHUNK_DEFAULT, TERMINAL_STATES, CancelReply, CancelRequest, CellStatus, ErrorReply,
+                                 FileChunk, FileChunkRequest, FileInfo, FileList, JobEvent, JobList, JobRecord, Keys,
+                                 ListJobsRequest, ScanDrawingRequest, SubmitReply, dumps)
 
 log = logging.getLogger("cellctl.service.client")
 M = TypeVar("M", bound=BaseModel)
@@ -193,6 +197,36 @@ class CellClient:
 
     def cancel(self, job_id: str, reason: str | None = None) -> CancelReply:
         return self._query(self.keys.cancel(job_id), CancelReply, dumps(CancelRequest(reason=reason)))
+
+    def files(self, job_id: str) -> FileList:
+        """The files of an ended job's folder, with their sizes and SHA-256."""
+        return self._query(self.keys.files(job_id), FileList)
+
+    def fetch(self, job_id: str, name: str, dest: Path, chunk: int = CHUNK_DEFAULT) -> FileInfo:
+        """One file of an ended job, chunk by chunk, into ``dest`` (written beside it and renamed once its
+        SHA-256 matches: a file that arrived damaged or changed on the way is never left there)."""
+        tmp = dest.with_name(dest.name + ".part")
+        h, offset, first = hashlib.sha256(), 0, None
+        with open(tmp, "wb") as out:
+            while True:
+                c = self._query(self.keys.file(job_id, name), FileChunk,
+                                dumps(FileChunkRequest(offset=offset, length=chunk)))
+                first = first or c
+                if (c.size, c.sha256) != (first.size, first.sha256) or c.offset != offset:
+                    tmp.unlink(missing_ok=True)
+                    raise CellError("bad_reply", f"{name}: the file changed while it was fetched")
+                data = base64.b64decode(c.data, validate=True)
+                h.update(data)
+                out.write(data)
+                offset += len(data)
+                if c.eof or not data:
+                    break
+        if h.hexdigest() != first.sha256 or offset != first.size:
+            tmp.unlink(missing_ok=True)
+            raise CellError("bad_reply", f"{name}: {offset} bytes with SHA-256 {h.hexdigest()[:12]}..., the cell "
+                                         f"says {first.size} bytes, {first.sha256[:12]}...")
+        tmp.replace(dest)
+        return FileInfo(name=name, size=first.size, sha256=first.sha256)
 
     def alive(self, timeout_s: float = 2.0) -> bool:
         """Is the cell's liveliness token there (the service is up and ready)?"""

@@ -28,11 +28,12 @@ import zenoh
 from cellctl.config import CellConfig, ServiceConfig
 from cellctl.scan.modes import MODES
 from cellctl.service import logs
-from cellctl.service.api import (MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, ApiError, Artifacts, CancelReply, CancelRequest,
-                                 CellStatus, JobList, Keys, ListJobsRequest, ResultSummary,
-                                 ScanDrawingRequest, SubmitReply, dumps, parse_payload)
+from cellctl.service.api import (MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, TERMINAL_STATES, ApiError, Artifacts,
+                                 CancelReply, CancelRequest, CellStatus, FileChunkRequest, JobList, Keys,
+                                 ListJobsRequest, ResultSummary, ScanDrawingRequest, SubmitReply, dumps, parse_payload)
 from cellctl.service.client import zenoh_error
 from cellctl.service.events import JobEvents
+from cellctl.service.files import JobFiles
 from cellctl.service.readiness import READINESS_PERIOD_S, DeviceWatch
 from cellctl.service.store import JobStore, StoreError, now_iso
 from cellctl.scan.spec import JobSpec
@@ -119,6 +120,7 @@ class CellService:
         self._accepting = False
         self._stopping = threading.Event()
         self.events = JobEvents(self.store, self.keys, lambda: self.session)
+        self.files = JobFiles()
         self._worker: threading.Thread | None = None
         self._job_worker = Worker()  # the jobs' own process (cellctl.service.worker)
         self.session: zenoh.Session | None = None
@@ -273,7 +275,8 @@ class CellService:
     def _route(self, key: str, payload: bytes | None):
         if any(ch in key for ch in "*$"):
             raise ApiError("invalid_request", f"{key}: wildcards are not served; query {self.keys.jobs}, "
-                           f"{self.keys.submit}, {self.keys.jobs}/<job_id> or {self.keys.jobs}/<job_id>/cancel")
+                           f"{self.keys.submit}, {self.keys.jobs}/<job_id>, .../cancel, .../files or "
+                           f".../files/<name>")
         rest = key[len(self.keys.jobs):].strip("/")
         parts = rest.split("/") if rest else []
         if not parts:
@@ -286,6 +289,11 @@ class CellService:
             return self.cancel(parts[0], parse_payload(payload, CancelRequest, required=False))
         if len(parts) == 2 and parts[1] == "events":
             raise ApiError("invalid_request", f"{key} is published, not queried: subscribe to it")
+        if len(parts) == 2 and parts[1] == "files":
+            return self.files.listing(parts[0], self._ended_folder(parts[0]))
+        if len(parts) == 3 and parts[1] == "files":
+            req = parse_payload(payload, FileChunkRequest, required=False)
+            return self.files.chunk(parts[0], self._ended_folder(parts[0]), parts[2], req)
         raise ApiError("invalid_request", f"no such key: {key}")
 
     # --- the API ----------------------------------------------------------------------------------
@@ -346,6 +354,13 @@ class CellService:
         if rec is None:
             raise ApiError("not_found", f"no job {job_id!r} on cell {self.cfg.cell_id}")
         return rec
+
+    def _ended_folder(self, job_id: str) -> Path | None:
+        """The folder of an ended job (None if it has none); not_found, or not_ended while it runs."""
+        rec = self.job(job_id)
+        if rec.state not in TERMINAL_STATES:
+            raise ApiError("not_ended", f"job {job_id} is {rec.state}: its files are served once it has ended")
+        return Path(rec.artifacts.dir) if rec.artifacts else None
 
     def list_jobs(self, req: ListJobsRequest) -> JobList:
         jobs, total = self.store.list(req.limit, req.state)
