@@ -1,7 +1,9 @@
 """Security (docs/RELIABILITY.md, "Security"): the yard router's own limits and per-cell access control,
 the scene path allow-list, and no credential in the repo. Real parts only: `cellctl router` with the
 shipped deploy/zenoh/router.json5 on loopback, real `cellctl serve` cells, credentials made at test time
-by deploy/make-users.sh (the `router` fixture of tests/test_deploy.py)."""
+by deploy/make-users.sh (the `router` fixture of tests/test_deploy.py).
+
+Tests of: cellctl.service.router, cellctl.service.logs (one line per log record, whatever a key holds)."""
 
 from __future__ import annotations
 
@@ -237,7 +239,8 @@ def test_commands_are_rate_limited_per_session_reads_are_not(yard):
 # --- access control: operators command, cells only serve, tablets publish nothing -------------------
 def test_an_operator_submits_and_cancels_through_the_router(yard, tmp_path):
     """An operator's commands pass the ACL and the rate limit: a real job runs, its events reach the
-    operator through the router, and the cancel stops it. The router's own admin space stays closed."""
+    operator through the router, the cancel stops it and its files can be fetched. The router's own admin
+    space stays closed."""
     endpoint, pw, _, _ = yard
     events, started = [], threading.Event()
 
@@ -254,6 +257,8 @@ def test_an_operator_submits_and_cancels_through_the_router(yard, tmp_path):
         rec = c.wait(job, JOB_S)
         assert rec.state == "cancelled" and rec.transitions[-2].note == "cancel requested: security test"
         assert events[0] == "queued" and "scanning" in events
+        names = [f.name for f in c.files(job).files]  # what the cancelled job wrote, fetched through the router
+        assert "scan.rrd" in names and c.fetch(job, "result.json", tmp_path / "result.json").size > 0
         admin = answers(c.session.get("@/**", timeout=NO_REPLY_S))  # only the operator's own session answers
         assert admin and all(str(r.ok.key_expr).startswith(f"@/{c.session.zid()}/") for r in admin)
     _alive(yard)

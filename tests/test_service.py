@@ -2,8 +2,8 @@
 multicast scouting off, temp data dir), the CellClient, and short scans in the twin (smooth_cylinder,
 2 views, no noise). Nothing is mocked.
 
-Tests of: cellctl.service.server, cellctl.service.events, cellctl.service.client, cellctl.service.worker,
-cellctl.bench.latency (the status round trip under a scan).
+Tests of: cellctl.service.server, cellctl.service.events, cellctl.service.files, cellctl.service.client,
+cellctl.service.worker, cellctl.bench.latency (the status round trip under a scan).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.service.api import JobEvent
+from cellctl.service.api import FileChunk, JobEvent
 from cellctl.service.client import CellClient, CellError, NoReply
 from cellctl.service.loopback import ROOT, ServiceProcess, free_port
 from cellctl.service.store import JobStore
@@ -288,7 +288,8 @@ def test_an_ended_jobs_cut_and_recording_are_fetched_in_chunks_and_verified(cell
         k = c.keys
         last = c._query(k.file(rec.job_id, "scan.rrd"), FileChunk,
                         json.dumps({"offset": by_name["scan.rrd"].size - 10, "length": 100}).encode())
-        assert (last.length, last.eof) == (10, True) and base64.b64decode(last.data) == (folder / "scan.rrd").read_bytes()[-10:]
+        assert (last.length, last.eof) == (10, True)
+        assert base64.b64decode(last.data) == (folder / "scan.rrd").read_bytes()[-10:]
         for name, code in [("no_such.bin", "not_found"), ("..", "invalid_request"), (".hidden", "invalid_request")]:
             with pytest.raises(CellError) as e:
                 c._query(k.file(rec.job_id, name), FileChunk)
@@ -296,8 +297,8 @@ def test_an_ended_jobs_cut_and_recording_are_fetched_in_chunks_and_verified(cell
         with pytest.raises(CellError) as e:
             c._query(k.file(rec.job_id, "scan.rrd"), FileChunk, b'{"length": 600000}')  # over CHUNK_MAX
         assert e.value.code == "invalid_request"
-    out = subprocess.run([sys.executable, "-m", "cellctl.cli", "jobs", "fetch", rec.job_id, "--out", str(tmp_path / "cli"),
-                          "--name", "cut_path.json", "--cell", "sim-1", "--connect", cell.endpoint],
+    out = subprocess.run([sys.executable, "-m", "cellctl.cli", "jobs", "fetch", rec.job_id, "--out",
+                          str(tmp_path / "cli"), "--name", "cut_path.json", "--cell", "sim-1", "--connect", cell.endpoint],
                          cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert (tmp_path / "cli" / rec.job_id / "cut_path.json").read_bytes() == (folder / "cut_path.json").read_bytes()
