@@ -5,9 +5,21 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import get_args
 
+from cellctl.service.api import LIST_LIMIT_MAX, JobState
 from planners.config import ConfigError
 from planners.registry import DEFAULT_PLANNER, PLANNERS
+
+
+JOB_STATES = get_args(JobState)
+
+
+def _list_limit(text: str) -> int:
+    n = int(text)
+    if not 1 <= n <= LIST_LIMIT_MAX:
+        raise argparse.ArgumentTypeError(f"{n} is not in 1..{LIST_LIMIT_MAX}")
+    return n
 
 
 def _scan(args: argparse.Namespace) -> int:
@@ -126,9 +138,9 @@ class _ProgressBar:
         if ev.phase == "done":
             frac = 1.0
         n = int(24 * min(frac, 1.0))
-        step = f"step {ev.step + 1}/{ev.max_steps}" if ev.step is not None and ev.max_steps else ""
+        step = f"view {ev.step + 1} of {ev.max_steps}" if ev.step is not None and ev.max_steps else ""
         cov = f"coverage {ev.coverage_percent:.1f} %" if ev.coverage_percent is not None else ""
-        line = f"[{'#' * n:<24}] {ev.phase:<12} {step:<11} {cov}"
+        line = f"[{'#' * n:<24}] {ev.phase:<12} {step:<14} {cov}"
         if self.tty:
             self.stream.write("\r" + line.ljust(78))
             self.open = True
@@ -342,8 +354,8 @@ def build_parser() -> argparse.ArgumentParser:
     jsub = j.add_subparsers(dest="jobs_cmd", required=True)
     jl = jsub.add_parser("list", help="newest first")
     _client_args(jl)
-    jl.add_argument("--limit", type=int, default=20)
-    jl.add_argument("--state", default=None)
+    jl.add_argument("--limit", type=_list_limit, default=20, metavar=f"1..{LIST_LIMIT_MAX}")
+    jl.add_argument("--state", default=None, choices=JOB_STATES, help="only jobs in this state")
     jl.set_defaults(func=_jobs_list)
     js = jsub.add_parser("show", help="the job record as JSON")
     js.add_argument("job_id")

@@ -148,7 +148,7 @@ def test_a_job_running_when_the_service_dies_is_interrupted_and_the_queued_ones_
         store = JobStore(svc.data_dir / "jobs.sqlite")
         rec = store.get(stopped)
         store.close()
-        assert rec.state == "interrupted" and rec.result is not None and rec.result.terminated_by == "cancelled"
+        assert rec.state == "interrupted" and rec.result is not None and rec.result.terminated_by == "interrupted"
         assert "result.json" in rec.artifacts.files and "drawing.ply" in rec.artifacts.files
     finally:
         svc.kill()
@@ -340,6 +340,7 @@ def test_a_job_over_its_timeout_fails_in_process(tmp_path):
             job_id = c.submit(LONG).job_id  # 12 views: far longer than the 1 s job timeout on any machine
             rec = c.wait(job_id, JOB_S)
         assert rec.state == "failed" and rec.error.startswith("timeout:"), rec.error
+        assert rec.result is not None and rec.result.terminated_by == "timeout"
         assert "result.json" in rec.artifacts.files
     finally:
         svc.stop(10)

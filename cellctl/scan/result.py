@@ -91,8 +91,9 @@ class ResultSummary(Summary):
     scene: str = Field(max_length=500)
     planner: str = Field(max_length=32)
     steps: int = Field(ge=0, description="views captured, initial one included")
-    terminated_by: str = Field(max_length=64, description="quality, frontier, max_steps, unreachable, cancelled, "
-                                                          "error, ...")
+    terminated_by: str = Field(max_length=64, description="why the scan stopped: quality, frontier, max_steps, "
+                               "unreachable, error, ...; stopped from outside: cancelled (an operator), timeout "
+                               "(service.job_timeout_s), interrupted (the service stopped)")
     coverage_percent: float = Field(ge=0, le=100, description="of the painted line (twin: against ground truth)")
     coverage_hit: int = Field(ge=0)
     coverage_total: int = Field(ge=0)

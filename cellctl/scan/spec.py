@@ -42,6 +42,7 @@ class Hooks:
     "scanning" / "planning-cut"; ``progress`` prints each step and the cut to stderr (the CLI)."""
 
     cancel: threading.Event | None = None
+    stopped_as: Callable[[], str] | None = None  # what a cancel means, for terminated_by (default "cancelled")
     on_step: Callable[[StepRecord], None] | None = None
     on_phase: Callable[[str], None] | None = None
     progress: bool = False

@@ -217,8 +217,9 @@ class Progress(ApiModel):
 
     phase: Phase
     seq: int = Field(ge=0, description="of the last event published")
-    step: int | None = Field(None, ge=0)
-    max_steps: int | None = Field(None, ge=1)
+    step: int | None = Field(None, ge=0, description="the last view captured, counted from 0 (the initial view): "
+                             "step k is view k + 1")
+    max_steps: int | None = Field(None, ge=1, description="views at most, the initial one included")
     coverage_percent: float | None = Field(None, ge=0, le=100)
     drawing_points: int | None = Field(None, ge=0)
     at: Timestamp
@@ -305,8 +306,9 @@ class JobEvent(ApiModel):
     seq: int = Field(ge=0, description="0, 1, 2, ... per job, no gaps: a gap means an event was lost")
     phase: Phase
     state: JobState
-    step: int | None = Field(None, ge=0, description="exploration step (0: the initial view)")
-    max_steps: int | None = Field(None, ge=1)
+    step: int | None = Field(None, ge=0, description="the view just captured, counted from 0 (the initial view): "
+                             "step k is view k + 1 of at most max_steps")
+    max_steps: int | None = Field(None, ge=1, description="views at most, the initial one included")
     coverage_percent: float | None = Field(None, ge=0, le=100, description="so far, when known (twin: ground "
                                                                            "truth)")
     drawing_points: int | None = Field(None, ge=0)

@@ -80,6 +80,9 @@ class ServiceError(RuntimeError):
     """The service cannot start (its data dir is in use by another one)."""
 
 
+STOPPED_AS = {"operator": "cancelled", "timeout": "timeout", "shutdown": "interrupted"}  # reason -> terminated_by
+
+
 class JobControl:
     """The running job's cancel switch; the first reason wins (operator, timeout, shutdown)."""
 
@@ -463,7 +466,8 @@ class CellService:
                 spec = JobSpec(self.cfg, self.cfg_path, scene, req.planner, profile=self.scfg.job_profile,
                                seed=req.seed, noise=req.noise, max_steps=req.max_steps, dry_run_cut=req.dry_run_cut,
                                run_dir=job_dir, arm_host=self.devices.arm_host)
-                out = self._job_worker.run(spec, ctl.cancel, on_step=on_step, on_phase=on_phase)
+                out = self._job_worker.run(spec, ctl.cancel, on_step=on_step, on_phase=on_phase,
+                                           stopped_as=lambda: STOPPED_AS.get(ctl.reason, "cancelled"))
                 summary, error, crashed = out.summary, out.error, out.crashed
                 if crashed:
                     log.error("job %s: %s", job_id, error)

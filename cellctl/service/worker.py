@@ -51,6 +51,7 @@ class Worker:
         self.proc = None
         self._jobs = self._msgs = None
         self._stop = self._ctx.Event()  # the running job's cancel, as the worker sees it
+        self._stopped_as = self._ctx.Array("c", 32)  # and what it means: cancelled, timeout, interrupted
 
     def start(self) -> None:
         """Start the worker if none is running (it imports the scan's libraries before the first
@@ -60,7 +61,8 @@ class Worker:
             return
         jobs_end, self._jobs = self._ctx.Pipe(duplex=False)  # (receiving end, sending end)
         self._msgs, msgs_end = self._ctx.Pipe(duplex=False)
-        self.proc = self._ctx.Process(target=_worker_main, args=(jobs_end, msgs_end, self._stop, os.getpid()),
+        self.proc = self._ctx.Process(target=_worker_main, args=(jobs_end, msgs_end, self._stop, self._stopped_as,
+                                                                      os.getpid()),
                                       name="cell-job-worker")
         self.proc.start()
         jobs_end.close()  # the worker holds these ends: EOF on ours when it is gone
@@ -68,18 +70,20 @@ class Worker:
         log.info("job worker started (pid %d)", self.proc.pid)
 
     def run(self, spec: JobSpec, cancel: threading.Event, *, on_step: Callable[[dict], None],
-            on_phase: Callable[[str], None]) -> Outcome:
+            on_phase: Callable[[str], None], stopped_as: Callable[[], str] = lambda: "cancelled") -> Outcome:
         """Run one job in the worker and wait for its result. ``cancel`` (operator, timeout,
-        shutdown) is passed on; a worker still busy ``KILL_AFTER_S`` later is killed. A worker that
+        shutdown) is passed on, with ``stopped_as()``, the result's terminated_by; a worker still busy ``KILL_AFTER_S`` later is killed. A worker that
         dies without a result (a crash in native code, killed) gives a crashed Outcome, the summary
         of whatever result.json the job wrote, and an error that says how it died."""
         self.start()
         self._stop.clear()
+        self._stopped_as.value = b""
         summary, error, cancelled_at, got_result = None, None, None, False
         try:
             self._jobs.send(spec)
             while not got_result:
                 if cancel.is_set() and cancelled_at is None:
+                    self._stopped_as.value = stopped_as().encode()[:31]
                     self._stop.set()
                     cancelled_at = time.monotonic()
                 if cancelled_at is not None and time.monotonic() - cancelled_at > KILL_AFTER_S and self.proc.is_alive():
@@ -145,7 +149,7 @@ def _die_with(parent_pid: int) -> None:
         os._exit(1)
 
 
-def _worker_main(jobs, msgs, stop, parent_pid: int) -> None:
+def _worker_main(jobs, msgs, stop, stopped_as, parent_pid: int) -> None:
     """The worker process: run each job it is sent, report each step and phase, then the result;
     None ends it."""
     _die_with(parent_pid)
@@ -155,7 +159,8 @@ def _worker_main(jobs, msgs, stop, parent_pid: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     import cellctl.scan.initial_view  # noqa: F401 - the heavy imports, before the first job
-    from cellctl.scan.run import Hooks, run_job
+    from cellctl.scan.run import run_job
+    from cellctl.scan.spec import Hooks
 
     while True:
         try:
@@ -170,7 +175,9 @@ def _worker_main(jobs, msgs, stop, parent_pid: int) -> None:
                                 "drawing_points": r.drawing_points}))
 
         try:
-            result, _ = run_job(spec, Hooks(cancel=stop, on_step=on_step, on_phase=lambda p: msgs.send(("phase", p))))
+            hooks = Hooks(cancel=stop, stopped_as=lambda: stopped_as.value.decode() or "interrupted", on_step=on_step,
+                          on_phase=lambda p: msgs.send(("phase", p)))  # unexplained: a SIGTERM to the worker
+            result, _ = run_job(spec, hooks)
             msgs.send(("result", result.summary().model_dump_json(), result.error))
         except Exception as e:  # noqa: BLE001 - a failed job: say why, keep what was written
             summary = summary_from_file(spec.run_dir / "result.json")
