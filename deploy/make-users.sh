@@ -10,7 +10,7 @@ umask 077
 mkdir -p "$dir"
 : > "$dir/zenoh-users.txt"
 for user in "$@"; do
-  pw=$(head -c 18 /dev/urandom | base64 | tr -d '/+=' | head -c 24)
+  pw=$(LC_ALL=C tr -dc 'A-Za-z0-9' < /dev/urandom | head -c 24)  # 24 characters, ~143 bits
   printf '%s:%s\n' "$user" "$pw" >> "$dir/zenoh-users.txt"
   printf '%s\n' "$pw" > "$dir/$user.password"
 done

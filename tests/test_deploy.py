@@ -74,8 +74,16 @@ def router(tmp_path_factory):
 
 
 def _creds(tmp: Path, user: str, password: str) -> str:
+    """The shipped example client config of the user's role (deploy/zenoh/), filled in as its comments
+    say: so the examples are the configs every test through the router uses."""
+    role = "cell" if user.startswith("cell-") else user
+    text = (ROOT / "deploy/zenoh" / f"{role}.json5").read_text()
+    if role == "cell":
+        text = text.replace("cell-<cell_id>", user)
+    placeholder = f"<PASSWORD FROM {user}.password>"
+    assert placeholder in text, f"deploy/zenoh/{role}.json5 has no {placeholder}"
     f = tmp / f"{user}.json5"
-    f.write_text(json.dumps({"transport": {"auth": {"usrpwd": {"user": user, "password": password}}}}))
+    f.write_text(text.replace(placeholder, password))
     return str(f)
 
 
@@ -143,6 +151,24 @@ def test_sessions_without_valid_credentials_are_refused(router, user, password):
         client(endpoint, user, password).close()
 
 
+def test_a_wrong_password_and_a_router_that_is_down_are_told_apart(router, tmp_path):
+    """Both fail to open a session; the client says which: the router answered and refused (check the
+    password in this file), or nothing answers there."""
+    from cellctl.service.client import CellClient, CellUnreachable, SessionRefused
+
+    endpoint, pw, _ = router
+    wrong = _creds(tmp_path, "operator", pw["operator"] + "x")
+    with pytest.raises(SessionRefused, match=f"answers but refused this session: check the user and password in {wrong}"):
+        CellClient("sim-1", [endpoint], zenoh_config_file=wrong)
+    down = f"tcp/127.0.0.1:{free_port()}"
+    with pytest.raises(CellUnreachable, match="nothing answers there") as e:
+        CellClient("sim-1", [down], zenoh_config_file=_creds(tmp_path, "viewer", pw["viewer"]))
+    assert not isinstance(e.value, SessionRefused)
+    out = subprocess.run([sys.executable, "-m", "cellctl.cli", "status", "--cell", "sim-1", "--connect", endpoint,
+                          "--zenoh-config", wrong], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 3 and "refused this session" in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
 def test_router_config_errors_are_clear(tmp_path):
     from cellctl.service.router import router_config
 
@@ -154,6 +180,13 @@ def test_router_config_errors_are_clear(tmp_path):
         router_config(bad)
     with pytest.raises(ValueError, match="make-users.sh"):
         router_config(ROOT / "deploy/zenoh/router.json5", users_file=str(tmp_path / "none.txt"))
+    # the shipped config names /etc/scrapcell/zenoh-users.txt: not made yet is one clear line, no traceback
+    if not Path("/etc/scrapcell/zenoh-users.txt").exists():
+        out = subprocess.run([sys.executable, "-m", "cellctl.service.router", "--config",
+                              str(ROOT / "deploy/zenoh/router.json5"), "--listen", f"tcp/127.0.0.1:{free_port()}"],
+                             cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+        assert "/etc/scrapcell/zenoh-users.txt (transport.auth.usrpwd.dictionary_file" in out.stderr, out.stderr
 
 
 def test_router_exits_on_sigterm(tmp_path):

@@ -11,6 +11,7 @@ import hashlib
 import json
 import logging
 import re
+import socket
 import threading
 import time
 import uuid
@@ -47,7 +48,12 @@ class NoReply(TimeoutError):
 
 
 class CellUnreachable(ConnectionError):
-    """The Zenoh session could not be opened (no router/peer at the endpoints)."""
+    """The Zenoh session could not be opened: nothing answers at the endpoints, or (``SessionRefused``)
+    something does and refused this session."""
+
+
+class SessionRefused(CellUnreachable):
+    """A router (or cell) answers at an endpoint but refused the Zenoh session: wrong user or password."""
 
 
 class Subscription:
@@ -62,6 +68,19 @@ class Subscription:
             except Exception:  # noqa: BLE001 - session already closed
                 pass
             self._sub = None
+
+
+def _accepts_tcp(endpoint: str, timeout_s: float = 2.0) -> bool:
+    """Whether a TCP (or TLS) endpoint accepts a connection: tells a router that refused the session
+    from one that is not there."""
+    m = re.match(r"^(?:tcp|tls)/(\[[^\]]+\]|[^:/\[]+):(\d+)", endpoint)
+    if not m:
+        return False
+    try:
+        with socket.create_connection((m.group(1).strip("[]"), int(m.group(2))), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
 
 
 class CellClient:
@@ -81,8 +100,14 @@ class CellClient:
         try:
             self.session = zenoh.open(conf)
         except zenoh.ZError as e:
+            listening = [ep for ep in self.connect if _accepts_tcp(ep)]
+            if listening:
+                creds = f"the user and password in {zenoh_config_file}" if zenoh_config_file else \
+                    "whether it needs a user and password (--zenoh-config, see deploy/zenoh/operator.json5)"
+                raise SessionRefused(f"{', '.join(listening)} answers but refused this session: check {creds} "
+                                     f"({zenoh_error(e)})") from None
             raise CellUnreachable(f"cannot reach the cell network at {', '.join(self.connect) or '(scouting)'}: "
-                                  f"{zenoh_error(e)}") from None
+                                  f"nothing answers there ({zenoh_error(e)})") from None
 
     def __enter__(self) -> CellClient:
         return self

@@ -31,6 +31,14 @@ def router_config(path: str | Path, listen: list[str] | None = None, users_file:
         if not Path(users_file).is_file():
             raise ValueError(f"credential file {users_file} does not exist (make it with deploy/make-users.sh)")
         cfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users_file)))
+    else:
+        try:
+            configured = json.loads(cfg.get_json("transport/auth/usrpwd/dictionary_file"))
+        except Exception:  # noqa: BLE001 - no such setting: a router without passwords
+            configured = None
+        if configured and not Path(configured).is_file():
+            raise ValueError(f"credential file {configured} (transport.auth.usrpwd.dictionary_file in {p}) does not "
+                             f"exist: make it with deploy/make-users.sh DIR USER..., or pass --users FILE")
     return cfg
 
 
@@ -64,7 +72,11 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         print(f"cellctl router: {e}", file=sys.stderr)
         return 2
-    run_router(cfg)
+    try:
+        run_router(cfg)
+    except zenoh.ZError as e:  # e.g. the listen address is taken
+        print(f"cellctl router: cannot start: {e}", file=sys.stderr)
+        return 1
     return 0
 
 
