@@ -80,7 +80,7 @@ def _creds(tmp: Path, user: str, password: str) -> str:
     text = (ROOT / "deploy/zenoh" / f"{role}.json5").read_text()
     if role == "cell":
         text = text.replace("cell-<cell_id>", user)
-    placeholder = f"<PASSWORD FROM {user}.password>"
+    placeholder = "<PASSWORD>"
     assert placeholder in text, f"deploy/zenoh/{role}.json5 has no {placeholder}"
     f = tmp / f"{user}.json5"
     f.write_text(text.replace(placeholder, password))

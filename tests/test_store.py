@@ -124,3 +124,49 @@ def test_a_broken_file_is_a_clear_error(tmp_path):
     p.write_bytes(b"this is not a database" * 100)
     with pytest.raises(StoreError, match="cannot open the job store"):
         JobStore(p)
+
+
+def test_retention_deletes_the_oldest_ended_folders_first_and_never_a_running_or_the_last_one(store, tmp_path):
+    """cellctl.service.retention: by size, the oldest ended jobs' folders go until the rest fits; by age,
+    those ended long enough ago; a running job's folder and the last ended one's always stay, and a
+    record whose folder is gone names none."""
+    from datetime import datetime, timedelta, timezone
+
+    from cellctl.service.retention import folder_bytes, prune
+
+    root = tmp_path / "jobs"
+    states = ["done", "failed", "running", "done", "cancelled"]  # oldest first
+    for i, st in enumerate(states):
+        d = root / _jid(i)
+        d.mkdir(parents=True)
+        (d / "scan.rrd").write_bytes(b"x" * 1_000_000)
+        store.create(_jid(i), "sim-1", REQ, str(d))
+        store.transition(_jid(i), "running")
+        if st != "running":
+            store.transition(_jid(i), st, artifacts=Artifacts(dir=str(d), files=["scan.rrd"]))
+    assert folder_bytes(root) == 5_000_000
+    assert prune(store, root, max_age_days=None, max_gb=None) == []
+    assert prune(store, root, max_age_days=None, max_gb=0.0035) == [_jid(0), _jid(1)]  # 5 MB -> 3 MB
+    assert sorted(p.name for p in root.iterdir()) == [_jid(2), _jid(3), _jid(4)]
+    assert store.get(_jid(0)).artifacts is None and store.get(_jid(0)).state == "done"  # the record stays
+    assert prune(store, root, max_age_days=None, max_gb=0.0001) == [_jid(3)]  # not the running one, nor the last
+    later = datetime.now(timezone.utc) + timedelta(days=40)
+    assert prune(store, root, max_age_days=30, max_gb=None, now=later) == []  # only the last ended is left
+    assert sorted(p.name for p in root.iterdir()) == [_jid(2), _jid(4)]
+
+
+def test_retention_by_age_deletes_what_ended_longer_ago(store, tmp_path):
+    from datetime import datetime, timedelta, timezone
+
+    from cellctl.service.retention import prune
+
+    root = tmp_path / "jobs"
+    for i in range(3):
+        d = root / _jid(i)
+        d.mkdir(parents=True)
+        store.create(_jid(i), "sim-1", REQ, str(d))
+        store.transition(_jid(i), "cancelled", artifacts=Artifacts(dir=str(d), files=[]))
+    now = datetime.now(timezone.utc)
+    assert prune(store, root, max_age_days=1, max_gb=None, now=now + timedelta(hours=12)) == []
+    assert prune(store, root, max_age_days=1, max_gb=None, now=now + timedelta(days=2)) == [_jid(0), _jid(1)]
+    assert [p.name for p in root.iterdir()] == [_jid(2)]  # the last ended job's folder stays

@@ -40,12 +40,14 @@ def _default(o):
 
 
 def write_ply(path: Path, cloud: Cloud) -> None:
+    """Binary PLY, float32 positions (metres; 0.1 um steps at the cell's range) and uint8 colours: 15
+    bytes a point, not the 27 of doubles."""
     import open3d as o3d  # heavy import, only where clouds are written
 
-    pc = o3d.geometry.PointCloud()
-    pc.points = o3d.utility.Vector3dVector(cloud.xyz.astype(np.float64))
-    pc.colors = o3d.utility.Vector3dVector(cloud.rgb.astype(np.float64) / 255.0)
-    if not o3d.io.write_point_cloud(str(path), pc, write_ascii=False):
+    pc = o3d.t.geometry.PointCloud()
+    pc.point.positions = o3d.core.Tensor(np.ascontiguousarray(cloud.xyz, dtype=np.float32))
+    pc.point.colors = o3d.core.Tensor(np.ascontiguousarray(cloud.rgb, dtype=np.uint8))
+    if not o3d.t.io.write_point_cloud(str(path), pc, write_ascii=False):
         raise OSError(f"could not write {path}")
 
 

@@ -12,6 +12,29 @@ import rerun.blueprint as rrb
 _PAINT = np.array([230, 30, 30], dtype=np.uint8)
 
 
+# What scan.rrd keeps of each view, so a job writes tens of MB, not hundreds: the colour image as JPEG,
+# the depth in whole millimetres (the D435's own resolution at the cell's range) and the view's cloud
+# thinned to one point per RECORD_VOXEL_M cell. The clouds in drawing.ply and surface.ply keep the
+# scan's own resolution (planners.yaml grid.surface_voxel_m).
+JPEG_QUALITY = 90
+RECORD_VOXEL_M = 0.004
+
+
+def depth_mm(depth: np.ndarray) -> np.ndarray:
+    """Metres (NaN: no return) -> uint16 millimetres (0: no return; beyond 65.5 m clipped)."""
+    d = np.nan_to_num(np.asarray(depth, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    return np.clip(np.rint(d * 1000.0), 0, 65535).astype(np.uint16)
+
+
+def thin(xyz: np.ndarray, voxel: float) -> np.ndarray:
+    """Indices of one point per occupied ``voxel`` cell (the first of each)."""
+    if len(xyz) == 0:
+        return np.zeros(0, dtype=np.int64)
+    cells = np.floor(np.asarray(xyz) / voxel).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    return np.sort(first)
+
+
 def _send_blueprint(rec: rr.RecordingStream, blueprint: rrb.Blueprint) -> None:
     """``rec.send_blueprint(blueprint)`` without its leak: rerun-sdk 0.41 never frees the temporary
     stream it logs the blueprint into (two native threads and its buffers per call, for good), unless
@@ -79,9 +102,10 @@ class ScanRecorder:
         rec.log("world/camera", rr.Transform3D(translation=T_base_cam[:3, 3], mat3x3=T_base_cam[:3, :3]))
         rec.log("world/camera/image", rr.Pinhole(image_from_camera=K, resolution=list(size),
                                                  camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.15))
-        rec.log("world/camera/image/rgb", rr.Image(color))
-        rec.log("world/camera/image/depth", rr.DepthImage(np.nan_to_num(depth, nan=0.0), meter=1.0))
-        rec.log(f"world/captures/{step}", rr.Points3D(cloud_xyz, colors=cloud_rgb, radii=0.0015))
+        rec.log("world/camera/image/rgb", rr.Image(color).compress(jpeg_quality=JPEG_QUALITY))
+        rec.log("world/camera/image/depth", rr.DepthImage(depth_mm(depth), meter=1000.0))
+        keep = thin(cloud_xyz, RECORD_VOXEL_M)
+        rec.log(f"world/captures/{step}", rr.Points3D(cloud_xyz[keep], colors=cloud_rgb[keep], radii=RECORD_VOXEL_M / 2))
         self._path.append(T_base_cam[:3, 3].copy())
         rec.log("world/viewpoints", rr.Points3D(np.array(self._path), colors=[40, 160, 255], radii=0.01,
                                                 labels=[str(i) for i in range(len(self._path))]))

@@ -329,7 +329,8 @@ refused submit or a finished job; `not_ready_reason` then says what is missing:
 
 `queued` → `running` → (`cancelling` →) `done` | `failed` | `cancelled` | `interrupted`; a queued job can
 go straight to `cancelled` (or `interrupted`, see below). A record's `artifacts` is absent until the job
-has a folder (it never names a folder that does not exist).
+has a folder, and again once retention has deleted it (`service.retention_days`, `service.retention_gb`:
+oldest ended jobs first, never the last one); it never names a folder that does not exist.
 
 - `done`: the scan ended by itself (quality, frontier, max_steps, ...); `result.cut` says what will be cut:
   `cut_fraction` of the drawing's length in `feasible_branches` cuts, the `gaps` left uncut with their

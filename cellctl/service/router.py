@@ -31,15 +31,19 @@ def router_config(path: str | Path, listen: list[str] | None = None, users_file:
         if not Path(users_file).is_file():
             raise ValueError(f"credential file {users_file} does not exist (make it with deploy/make-users.sh)")
         cfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users_file)))
-    else:
-        try:
-            configured = json.loads(cfg.get_json("transport/auth/usrpwd/dictionary_file"))
-        except Exception:  # noqa: BLE001 - no such setting: a router without passwords
-            configured = None
-        if configured and not Path(configured).is_file():
-            raise ValueError(f"credential file {configured} (transport.auth.usrpwd.dictionary_file in {p}) does not "
-                             f"exist: make it with deploy/make-users.sh DIR USER..., or pass --users FILE")
     return cfg
+
+
+def check_credentials(cfg: "zenoh.Config", path: str | Path) -> None:
+    """ValueError when the router would start without the credential file its config names (Zenoh
+    would fail with a traceback-sized error)."""
+    try:
+        configured = json.loads(cfg.get_json("transport/auth/usrpwd/dictionary_file"))
+    except Exception:  # noqa: BLE001 - no such setting: a router without passwords
+        configured = None
+    if configured and not Path(configured).is_file():
+        raise ValueError(f"credential file {configured} (transport.auth.usrpwd.dictionary_file in {path}) does not "
+                         f"exist: make it with deploy/make-users.sh DIR USER..., or pass --users FILE")
 
 
 def run_router(cfg: "zenoh.Config", stop: threading.Event | None = None) -> None:
@@ -69,6 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         cfg = router_config(args.config, args.listen, args.users)
+        check_credentials(cfg, args.config)
     except ValueError as e:
         print(f"cellctl router: {e}", file=sys.stderr)
         return 2

@@ -35,6 +35,7 @@ from cellctl.service.client import zenoh_error
 from cellctl.service.events import JobEvents
 from cellctl.service.files import JobFiles
 from cellctl.service.readiness import READINESS_PERIOD_S, DeviceWatch
+from cellctl.service.retention import prune
 from cellctl.service.store import JobStore, StoreError, now_iso
 from cellctl.scan.spec import JobSpec
 from cellctl.service.worker import Worker, summary_from_file
@@ -414,6 +415,7 @@ class CellService:
 
     # --- the worker -------------------------------------------------------------------------------
     def _work(self) -> None:
+        self._prune()  # what a long stop may have left over the bounds
         try:
             self._job_worker.start()  # from this thread: the worker lives as long as it
         except Exception:  # noqa: BLE001 - each job tries again, and fails with the reason
@@ -438,6 +440,7 @@ class CellService:
                 with self._cv:
                     self._running = None
                 self.devices.poke()  # the job may have found the arm or camera gone
+                self._prune()
 
     def _run(self, ctl: JobControl) -> None:
         job_id = ctl.job_id
@@ -492,6 +495,14 @@ class CellService:
         else:
             state, note = "done", cut_warning(summary)
         self._finish(job_id, state, note, result=summary, error=error)
+
+    def _prune(self) -> None:
+        """Retention (cellctl.service.retention); a failure is logged, never a job's or the service's."""
+        try:
+            prune(self.store, self.data_dir / "jobs", max_age_days=self.scfg.retention_days,
+                  max_gb=self.scfg.retention_gb)
+        except Exception:  # noqa: BLE001 - the disk's housekeeping must not stop the cell
+            log.exception("retention failed")
 
     def _state_of(self, ctl: JobControl) -> str:
         return "cancelling" if ctl.cancel.is_set() and ctl.reason == "operator" else "running"

@@ -196,6 +196,13 @@ class JobStore:
                                 planner=r["planner"], coverage_percent=cov, error=_first_line(err)))
         return out, total
 
+    def ended_folders(self) -> list[tuple[str, str, Path]]:
+        """(job id, when it ended, its folder) of every ended job with a folder, oldest first."""
+        with self._lock:
+            rows = self._db.execute("SELECT job_id, updated_at, artifacts FROM jobs WHERE state IN ('done', 'failed', "
+                                    "'cancelled', 'interrupted') AND artifacts IS NOT NULL ORDER BY id").fetchall()
+        return [(jid, at, Path(Artifacts.model_validate_json(arts).dir)) for jid, at, arts in rows]
+
     def count(self) -> int:
         with self._lock:
             return self._db.execute("SELECT COUNT(*) FROM jobs").fetchone()[0]
