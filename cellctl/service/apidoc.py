@@ -157,7 +157,8 @@ def render() -> str:
 
 An operator tablet submits "scan drawing" to a cell (a Panda + D435 behind `cellctl serve`) and gets the
 cutting path back. Transport: [Zenoh](https://zenoh.io) 1.x (eclipse-zenoh 1.10.2). Every payload is UTF-8
-JSON (Zenoh encoding `application/json`), every message carries `schema_version` ({SCHEMA_VERSION}), unknown
+JSON (Zenoh encoding `application/json`), every reply carries `schema_version` ({SCHEMA_VERSION}; in a request it
+may be left out, and means {SCHEMA_VERSION}), unknown
 fields are refused and types are strict (`"5"` is not `5`). Python clients: `cellctl.service.client.CellClient`;
 command line: `cellctl submit|jobs|status --cell <cell_id> --connect <endpoint>`.
 
@@ -178,6 +179,15 @@ command line: `cellctl submit|jobs|status --cell <cell_id> --connect <endpoint>`
   per key expression (e.g. a viewer that may only query `cell/*/status` and `cell/*/jobs`) work: queries
   are checked against their own key. `deploy/zenoh/router.json5` gives each cell exactly that on its own
   keys, and nothing else.
+- **Starting and reconnecting.** In client mode `zenoh.open` fails at once when nothing answers at the
+  endpoints (the router or cell is down): try again later. If an open session gets no answer after the
+  cell or router restarted, close it and open a new one. `{k}/alive` tells whether the cell is up: a liveliness `get` on it answers
+  while it is, a liveliness subscriber hears it come and go (read the records of the jobs you follow
+  when it comes back, see "Job states").
+- **What a client needs** on a router with access control: `query` on `{k}/status`, `{k}/jobs`,
+  `{k}/jobs/*`, `{k}/jobs/*/files`, `{k}/jobs/*/files/*` (and, to command, `{k}/jobs/submit` and
+  `{k}/jobs/*/cancel`), `declare_subscriber` on `{k}/jobs/*/events`, and the liveliness query and
+  subscriber on `{k}/alive`.
 - **Rate limit.** The yard router drops a session's submit that follows its previous submit (to any cell)
   within 0.2 s, and likewise for cancels: the dropped query gets no reply. Reads are not limited.
 
@@ -196,7 +206,11 @@ command line: `cellctl submit|jobs|status --cell <cell_id> --connect <endpoint>`
 | `{k}/alive` | liveliness token | - | - |
 
 Any query can instead get an **error reply** (Zenoh `reply_err`) with an [ErrorReply](#errorreply) payload.
-Queries on `{k}/jobs/**` must use exact keys (no `*`/`**`): a wildcard gets `invalid_request`. Payloads over
+Queries on `{k}/jobs/**` must use exact keys (no `*`/`**`): a wildcard gets `invalid_request`.
+`cell/*/status` is the one useful wildcard: every cell that hears it answers with its own status, on its
+own key `cell/<cell_id>/status`. A query whose key expression spans several of a cell's keys (e.g. `{k}/**`) reaches
+each queryable it intersects and gets one reply from each (here a status and an `invalid_request`):
+a client must be ready for several replies to one query and tell them apart by their key. Payloads over
 {MAX_PAYLOAD_BYTES} bytes get `payload_too_large` on every key (including those that ignore their payload); a
 query over {MAX_MESSAGE_BYTES} bytes is dropped by the cell's Zenoh transport (and by the yard router's,
 `deploy/zenoh/router.json5`) and gets no reply.
@@ -224,26 +238,34 @@ A cell whose arm or camera does not answer (`ready: false` in the status) refuse
 {_json(ex["error_not_ready"])}
 
 To follow a job from its first event, subscribe to `{k}/jobs/*/events` **before** submitting and keep the
-events whose `job_id` is the one in the reply (`CellClient.submit(request, on_event=...)` does this).
+events whose `job_id` is the one in the reply (`CellClient.submit(request, on_event=...)` does this). The
+`queued` event (seq 0) can arrive before the submit's reply: buffer events until the job id is known.
 
 #### Timeouts and retries
 
-A query that gets no reply within the client's timeout ends with **Zenoh's own error reply**: its payload
-is the 7 bytes `Timeout` (not JSON, not an ErrorReply; some Zenoh versions end the query with no reply
-at all). A client must treat both as "no answer", never parse them as an ErrorReply. For reads
-(`status`, a job, the list) just ask again. For a submit the job may have been queued although the reply
-was lost: put a **`request_id`** of your own in every submit (8-64 characters of `A-Z a-z 0-9 _ . : -`,
-e.g. `<tablet>:<uuid4>`, one per job the operator asked for) and, on a timeout, send the **same request,
-request_id and all**, again. The cell keeps each job's request_id with it: a submit whose request_id it
-already holds queues nothing and replies with that job, whatever became of it, and `duplicate: true`:
+The cell's replies, normal and error, are JSON with Zenoh encoding `application/json`. "No answer" comes in
+two forms with eclipse-zenoh 1.10.2: a query that a queryable holds past the client's timeout ends with
+**Zenoh's own error reply**, payload the 7 bytes `Timeout`, encoding `zenoh/string` (not JSON, not an
+ErrorReply); a query that no queryable serves (the cell is down, a wrong cell id, denied by access
+control, dropped by the rate limit) ends **at once with no reply**. A client must treat both as "no
+answer", never parse them as an ErrorReply. For reads (`status`, a job, the list, files) just ask again.
+For a submit the job may have been queued although the reply was lost: put a **`request_id`** of your
+own in every submit (8-64 characters of `A-Z a-z 0-9 _ . : -`, e.g. `<tablet>:<uuid4>`: with the 36
+characters of a UUID the tablet's part has at most 27 of those characters) and, on no answer, send the
+**same request, request_id and all**, again. The cell keeps each job's request_id with it: a submit whose
+request_id it already holds queues nothing and replies with that job, whatever became of it, and
+`duplicate: true` (events you missed meanwhile are in its record):
 
 {_json(ex["submit_again"])}
 
-The same request_id with a different request is `invalid_request` (detail `loc: request_id`). A tablet
-should wait at least 5 s for a submit's reply (the cell answers in milliseconds; 5 s covers a busy router
-or a Wi-Fi roam), then retry 2-3 times with a growing pause; `CellClient.submit` adds a request_id and
-retries 3 times by itself. If there is still no reply, show the operator that the cell is unreachable and
-keep the request (with its request_id) to send once the cell answers again.
+The same request_id with a different request is `invalid_request` (detail `loc: request_id`). An error
+reply to a submit stores nothing: the request_id stays free, and the same request may be sent again
+later (after `queue_full`, `cell_not_ready`, `shutting_down`). A tablet should wait at least 5 s for a
+submit's reply (the cell answers in milliseconds; 5 s covers a busy router or a Wi-Fi roam) and make 3
+attempts in all, pausing 0.5 s, then 1 s, between them (never under 0.2 s: the yard router drops a
+session's second submit within 0.2 s, with no reply); `CellClient.submit` does exactly this. If there is
+still no answer, show the operator that the cell is unreachable and keep the request (with its
+request_id) to send once the cell answers again.
 
 ### A job: `{k}/jobs/<job_id>`
 
@@ -269,9 +291,12 @@ then ask for each by name, chunk by chunk: a query on `{k}/jobs/<job_id>/files/<
 
 {_json(ex["file_chunk"])}
 
-Decode `data` (base64), append it, ask again at `offset + length` until `eof`, then check the SHA-256 of
-the joined bytes against `sha256` (the same in the listing and in every chunk: if it changes, start over).
-An unknown name is `not_found`; a name with a path or starting with `.` is `invalid_request`.
+Decode `data` (base64), append it, ask again at the reply's `offset + length` until `eof` (a chunk may
+hold fewer bytes than asked for, as the example here, cut short to fit the page), then check the SHA-256
+of the joined bytes against `sha256`. An ended job's files do not change; if `sha256` or `size` differ
+between chunks anyway, start over. At or past the end a chunk has `length: 0` and `eof: true`. An
+unknown name, or a folder that retention has deleted meanwhile, is `not_found`; a name with a path or
+starting with `.` is `invalid_request`. `FileList.chunk_max` is the most `length` may ask for.
 `CellClient.fetch(job_id, name, path)` and `cellctl jobs fetch <job_id> [--name cut_path.json] [--out DIR]`
 do all of this.
 
@@ -347,7 +372,8 @@ oldest ended jobs first, never the last one); it never names a folder that does 
   on by default; off, they end `interrupted` too).
 - **After a restart** (the `{k}/alive` token goes and comes back) the events the restarted cell published
   before your session reconnected are not sent again: read the records of the jobs you follow (the
-  record's `progress.seq` is the last event's `seq`).
+  record's `progress.seq` is the last event's `seq`). Likewise after a gap in `seq`. A client without
+  events polls the record every 1-2 s.
 
 ## Error codes
 

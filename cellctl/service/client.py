@@ -155,7 +155,8 @@ class CellClient:
 
         A request without a ``request_id`` gets one (a random UUID), so a submit whose reply is lost
         is sent again, up to ``attempts`` times, without queueing the job twice: the cell answers a
-        known request_id with the job it made (``duplicate``). Raw bytes are sent once, as they are."""
+        known request_id with the job it made (``duplicate``). 3 attempts in all, 0.5 s then 1 s apart, as
+        docs/API.md advises a tablet. Raw bytes are sent once, as they are."""
         if isinstance(request, bytes):
             payload, attempts = request, 1
         else:
@@ -206,6 +207,7 @@ class CellClient:
                     raise
                 log.warning("no reply to submit (attempt %d of %d); sending it again with the same request_id",
                             attempt, attempts)
+                time.sleep(0.5 * attempt)  # 0.5 s, 1 s: past the yard router's 0.2 s between submits
                 attempt += 1
 
     def _reap(self) -> None:

@@ -250,8 +250,8 @@ class CellService:
 
     # --- Zenoh handlers ---------------------------------------------------------------------------
     def _on_status_query(self, query: zenoh.Query) -> None:
-        with query:
-            self._answer(query, lambda payload: self.status())
+        with query:  # replied on the cell's own key: `cell/*/status` gets one reply per cell, each named
+            self._answer(query, lambda payload: self.status(), reply_key=self.keys.status)
 
     def _on_jobs_query(self, query: zenoh.Query) -> None:
         """One queryable on cell/<id>/jobs/** (separate ones for jobs/submit and jobs/* would both
@@ -259,7 +259,7 @@ class CellService:
         with query:
             self._answer(query, lambda payload: self._route(str(query.key_expr), payload))
 
-    def _answer(self, query: zenoh.Query, handle) -> None:
+    def _answer(self, query: zenoh.Query, handle, reply_key: str | None = None) -> None:
         key = str(query.key_expr)
         try:
             raw = query.payload
@@ -267,7 +267,7 @@ class CellService:
                 raise ApiError("payload_too_large", f"payload is {len(raw)} bytes; at most {MAX_PAYLOAD_BYTES} are "
                                f"accepted")
             reply = handle(raw.to_bytes() if raw is not None else None)
-            query.reply(key, dumps(reply), encoding=JSON)
+            query.reply(reply_key or key, dumps(reply), encoding=JSON)
         except ApiError as e:
             log.info("%s: %s", key, e)
             query.reply_err(dumps(e.reply()), encoding=JSON)
