@@ -218,13 +218,14 @@ class CellService:
             log.info("%d queued job(s) stay queued for the next start: %s", len(queued), ", ".join(queued))
         elif queued:
             for job_id in queued:
-                self._finish(job_id, "interrupted", "the service was stopped before the job started")
+                self._finish(job_id, "interrupted", "the service was stopped before the job started",
+                             error="interrupted: the service was stopped before the job started")
         if self._worker is not None:
             self._worker.join(grace_s)
             if self._worker.is_alive() and running is not None:
                 log.error("job %s did not stop within %.0f s; marking it interrupted", running.job_id, grace_s)
-                self._finish(running.job_id, "interrupted", f"the service was stopped; the job did not stop "
-                             f"within {grace_s:.0f} s")
+                note = f"the service was stopped; the job did not stop within {grace_s:.0f} s"
+                self._finish(running.job_id, "interrupted", note, error=f"interrupted: {note}")
 
     def close(self) -> None:
         """Undeclare everything and close the Zenoh session (an unclosed session can hang the
