@@ -64,9 +64,9 @@ class ServiceConfig(BaseModel):
                                         "interrupted); false: they end interrupted too, for the operator to submit "
                                         "again")
     job_timeout_s: float = Field(900.0, gt=0, le=86400, description="a job running longer is cancelled and failed")
-    retention_days: float | None = Field(None, gt=0, description="an ended job's folder is deleted this long after "
+    retention_days: float | None = Field(None, gt=0, le=36500, description="an ended job's folder is deleted this long after "
                                          "it ended (its record stays); none: kept until retention_gb needs room")
-    retention_gb: float | None = Field(20.0, gt=0, description="the jobs' folders together stay under this: the "
+    retention_gb: float | None = Field(20.0, gt=0, le=1e6, description="the jobs' folders together stay under this: the "
                                        "oldest ended jobs' folders are deleted first, never a queued or running "
                                        "job's, nor the last ended one's (its cut can always be fetched); none: no "
                                        "bound")

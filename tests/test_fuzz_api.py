@@ -28,8 +28,8 @@ from pydantic import BaseModel, Field
 
 from cellctl.config import ServiceConfig, load_cell_config
 from cellctl.service import api
-from cellctl.service.api import (ERROR_CODES, MAX_JSON_DEPTH, MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, PLANNER_NAMES,
-                                 ApiError, ApiModel, CancelRequest, CellStatus, ErrorReply, JobRecord, ListJobsRequest, ScanDrawingRequest,
+from cellctl.service.api import (CHUNK_MAX, ERROR_CODES, MAX_JSON_DEPTH, MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES,
+                                 PLANNER_NAMES, REQUEST_ID_PATTERN, ApiError, ApiModel, CancelRequest, FileChunkRequest, CellStatus, ErrorReply, JobRecord, ListJobsRequest, ScanDrawingRequest,
                                  parse_payload)
 from cellctl.service.loopback import ServiceProcess
 from cellctl.service.server import CellService
@@ -42,7 +42,7 @@ FUZZ = settings(max_examples=1300, deadline=None, derandomize=True, database=Non
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
                                        HealthCheck.filter_too_much, HealthCheck.large_base_example])
 OVERSIZE_MAX = MAX_MESSAGE_BYTES - 32 * 1024  # oversized, yet under the transport cap: the service must answer
-REQUEST_MODELS = (ScanDrawingRequest, ListJobsRequest, CancelRequest)
+REQUEST_MODELS = (ScanDrawingRequest, ListJobsRequest, CancelRequest, FileChunkRequest)
 
 
 # --- generated JSON, with the tokens json.dumps cannot write ------------------------------------------------
@@ -128,14 +128,17 @@ VALID = {
         optional={"schema_version": st.just(1), "kind": st.just("scan_drawing"),
                   "planner": st.sampled_from(PLANNER_NAMES),
                   "max_steps": st.none() | st.integers(1, 200), "seed": st.none() | st.integers(0, 2**31 - 1),
-                  "noise": st.booleans(), "dry_run_cut": st.booleans(), "requested_by": st.none() | REQUESTED_BY}),
+                  "noise": st.booleans(), "dry_run_cut": st.booleans(), "requested_by": st.none() | REQUESTED_BY,
+                  "request_id": st.none() | st.from_regex(REQUEST_ID_PATTERN, fullmatch=True)}),
     ListJobsRequest: st.fixed_dictionaries(
         {}, optional={"schema_version": st.just(1), "limit": st.integers(1, 200),
                       "state": st.none() | st.sampled_from(["queued", "running", "done", "failed", "cancelled"])}),
     CancelRequest: st.fixed_dictionaries(
         {}, optional={"schema_version": st.just(1), "reason": st.none() | st.text(max_size=200)}),
+    FileChunkRequest: st.fixed_dictionaries(
+        {}, optional={"schema_version": st.just(1), "offset": st.integers(0, 2**40), "length": st.integers(1, CHUNK_MAX)}),
 }
-REQUIRED = {ScanDrawingRequest: True, ListJobsRequest: False, CancelRequest: False}
+REQUIRED = {ScanDrawingRequest: True, ListJobsRequest: False, CancelRequest: False, FileChunkRequest: False}
 
 
 @dataclass

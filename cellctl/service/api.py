@@ -164,7 +164,7 @@ class FileChunkRequest(ApiModel):
     """Optional payload of a query on ``cell/<cell_id>/jobs/<job_id>/files/<name>`` (none: the first chunk)."""
 
     schema_version: Literal[1] = SCHEMA_VERSION
-    offset: int = Field(0, ge=0, description="byte of the file to start at")
+    offset: int = Field(0, ge=0, le=2**40, description="byte of the file to start at")
     length: int = Field(CHUNK_DEFAULT, ge=1, le=CHUNK_MAX, description="bytes at most")
 
 
