@@ -31,7 +31,7 @@ def run_initial_view(spec: JobSpec, hooks: Hooks) -> tuple[ScanResult, Path]:
     result = ScanResult(scene=scene.name, planner=spec.planner)
     try:
         if hooks.cancel is not None and hooks.cancel.is_set():
-            result.terminated_by = (hooks.stopped_as() if hooks.stopped_as else None) or "cancelled"
+            result.terminated_by = hooks.stop_label()
             return result, run_dir
         if len(scene.initial_view_candidates) == 0:
             raise ValueError(f"scene {scene.name} has no initial view")

@@ -73,7 +73,7 @@ class ScanJob:
     def __init__(self, arm: Arm, camera: RGBDCamera, planner_name: str, pcfg: PlannersConfig,
                  mcfg: MotionConfig, recorder=None, progress: Callable[[StepRecord], None] | None = None,
                  park_q: np.ndarray | None = None, cancel: threading.Event | None = None,
-                 stopped_as: Callable[[], str] | None = None):
+                 stopped_as: Callable[[], str] = lambda: "cancelled"):
         self.arm, self.camera, self.pcfg, self.mcfg = arm, camera, pcfg, mcfg
         self.abilities = ArmAbilities.of(arm)  # the arm's optional abilities, checked once here
         self.cancel = cancel  # set by another thread: the scan ends after the current step, the arm at once
@@ -302,8 +302,6 @@ class ScanJob:
     def cancelled(self) -> bool:
         return self.cancel is not None and self.cancel.is_set()
 
-    def _stopped(self) -> str:
-        return (self.stopped_as() if self.stopped_as is not None else None) or "cancelled"
 
     def _stop_arm_on_cancel(self, done: threading.Event) -> None:
         """A move takes seconds: an operator's cancel stops the arm mid-way, not at the next view."""
@@ -320,14 +318,14 @@ class ScanJob:
             threading.Thread(target=self._stop_arm_on_cancel, args=(done,), name="scan-cancel", daemon=True).start()
         try:
             if self.cancelled():
-                res.terminated_by = self._stopped()
+                res.terminated_by = self.stopped_as()
                 return res
             self._count(res, self.move_to_initial(initial_candidates))
             initial_pose = self.arm.camera_pose()
             self._explore(res, initial_pose, gt_points)
         except Exception as e:  # noqa: BLE001 - any failure ends the scan, never loses what was recorded
             if self.cancelled():  # the stopped arm's TrajectoryError is the cancel itself, not a fault
-                res.terminated_by = self._stopped()
+                res.terminated_by = self.stopped_as()
                 return res
             self._stop_arm(res)
             res.error = f"{type(e).__name__}: {e}"
@@ -354,7 +352,7 @@ class ScanJob:
         last_plan: ViewPlan | None = None
         for k in range(self.pcfg.max_steps):
             if self.cancelled():
-                res.terminated_by = self._stopped()
+                res.terminated_by = self.stopped_as()
                 return
             t0 = time.perf_counter()
             frame = self._capture(k)

@@ -158,7 +158,7 @@ def _run_scan(spec: JobSpec, hooks: Hooks) -> tuple[ScanResult, Path]:
                 scene = dev.scene  # as placed in the twin (a fault may have moved it)
                 recorder.log_scene(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points)
                 job = ScanJob(dev.arm, dev.camera, planner, pcfg, cfg.motion, recorder, report,
-                              park_q=twin_cfg.home_q, cancel=hooks.cancel, stopped_as=hooks.stopped_as)
+                              park_q=twin_cfg.home_q, cancel=hooks.cancel, stopped_as=hooks.stop_label)
                 if hooks.on_phase:
                     hooks.on_phase("scanning")
                 result = job.run(scene.name, scene.initial_view_candidates, scene.gt_points)

@@ -46,3 +46,7 @@ class Hooks:
     on_step: Callable[[StepRecord], None] | None = None
     on_phase: Callable[[str], None] | None = None
     progress: bool = False
+
+    def stop_label(self) -> str:
+        """The result's terminated_by after a cancel: the caller's word for it, else "cancelled"."""
+        return (self.stopped_as() if self.stopped_as is not None else None) or "cancelled"

@@ -22,23 +22,21 @@ class JobEvents:
         self._lock = threading.Lock()
         self._seq: dict[str, int] = {}
 
-    def continue_from(self, job_id: str, seq: int) -> None:
-        """A job recovered from the store: its next event follows its last stored one."""
-        with self._lock:
-            self._seq[job_id] = seq
-
     def emit(self, job_id: str, phase: str, state: str, *, step: int | None = None, max_steps: int | None = None,
              coverage_percent: float | None = None, drawing_points: int | None = None,
              message: str | None = None) -> None:
         """Number, store and publish one event; what it does not say is carried from the last one (a
-        new "queued" carries no step)."""
+        new "queued" carries no step). A job this process has not numbered yet (one a previous process
+        left unfinished) goes on from its last stored event."""
         with self._lock:
-            seq = self._seq.get(job_id, -1) + 1
+            last = None
+            if job_id not in self._seq or max_steps is None or step is None or coverage_percent is None:
+                rec = self.store.get(job_id)
+                last = rec.progress if rec else None
+            seq = self._seq[job_id] + 1 if job_id in self._seq else (last.seq + 1 if last is not None else 0)
             self._seq[job_id] = seq
             at = now_iso()
             if max_steps is None or step is None or coverage_percent is None:
-                rec = self.store.get(job_id)
-                last = rec.progress if rec else None
                 if last is not None:
                     max_steps = max_steps if max_steps is not None else last.max_steps
                     if phase != "queued":

@@ -160,13 +160,9 @@ class CellService:
             self._declared.append(s.declare_queryable(k.status, self._on_status_query))
             self._declared.append(s.declare_queryable(k.jobs_tree, self._on_jobs_query))
             for job_id in recovered:
-                rec = self.store.get(job_id)
-                self.events.continue_from(job_id, rec.progress.seq if rec and rec.progress else -1)
                 self.events.emit(job_id, "interrupted", "interrupted", message="the service stopped before the job "
                                  "ended")
             for job_id in requeued:  # in their order, before any new submit
-                rec = self.store.get(job_id)
-                self.events.continue_from(job_id, rec.progress.seq if rec and rec.progress else -1)
                 self._queue.append(job_id)
                 self.events.emit(job_id, "queued", "queued", message=f"the service restarted; queued again at "
                                  f"position {len(self._queue)}")
