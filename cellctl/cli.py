@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import get_args
 
 from cellctl.service.api import LIST_LIMIT_MAX, JobState
+from configs import CONFIG_DIR
 from planners.config import ConfigError
 from planners.registry import DEFAULT_PLANNER, PLANNERS
 
@@ -390,6 +391,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="listen endpoint, e.g. tcp/127.0.0.1:7447 (repeatable; default: the config's)")
     r.add_argument("--users", default=None, help="user:password file (default: the config's dictionary_file)")
     r.set_defaults(func=_router)
+    tb = sub.add_parser("tablet", help="serve the operator's tablet web app (a Zenoh client of the cells, "
+                                       "docs/OPERATORS.md)")
+    tb.add_argument("--config", default=str(CONFIG_DIR / "tablet.yaml"), help="tablet config (configs/tablet.yaml)")
+    tb.add_argument("--add-user", metavar="NAME", default=None,
+                    help="add (or replace) a page login instead of serving; the password is asked for, or read "
+                         "from stdin")
+    tb.add_argument("--role", choices=("operator", "viewer"), default="operator",
+                    help="with --add-user: an operator starts and cancels jobs, a viewer only watches")
+    tb.set_defaults(func=_tablet)
+
     cal = sub.add_parser("calibrate", help="calibrate the cell (hand-eye)")
     cal_kind = cal.add_subparsers(dest="what", required=True)
     he = cal_kind.add_parser("hand-eye", help="solve the camera's pose on the flange from views of a ChArUco board "
@@ -468,6 +479,32 @@ def _router(args: argparse.Namespace) -> int:
 
     argv = (["--config", args.config] if args.config else []) + [a for e in (args.listen or []) for a in ("--listen", e)]
     return router_main(argv + (["--users", args.users] if args.users else []))
+
+
+def _tablet(args: argparse.Namespace) -> int:
+    from cellctl.tablet.config import load_config
+
+    cfg = load_config(args.config)
+    if args.add_user:
+        import getpass
+
+        from cellctl.tablet.accounts import add_user
+
+        if sys.stdin.isatty():
+            password = getpass.getpass(f"password for {args.add_user}: ")
+            if getpass.getpass("again: ") != password:
+                raise ValueError("the two passwords differ")
+        else:  # scripts pipe it in, so it shows in no process list
+            password = sys.stdin.readline().rstrip("\n")
+        acct = add_user(cfg.accounts_file, args.add_user, args.role, password)
+        print(f"{acct.user} ({acct.role}) written to {cfg.accounts_file}; restart the tablet app to use it")
+        return 0
+    from cellctl.service.logs import setup
+    from cellctl.tablet.app import serve
+
+    setup()
+    serve(cfg)
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:

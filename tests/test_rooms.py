@@ -3,9 +3,11 @@ drivers/ and sim/ never reach into planners/.
 
 Inside cellctl/ the rooms are cellctl/scan/ (the scan-drawing job, no network), cellctl/service/ (the Zenoh
 job service), cellctl/bench/ (the benchmarks) and cellctl/commissioning/ (doctor, hand-eye), with cli.py
-and config.py beside them: scan/ imports nothing from cellctl.service, cellctl.bench, cellctl.commissioning
-nor zenoh; service/ nothing from cellctl.bench nor cellctl.commissioning; commissioning/ nothing from
-cellctl.service nor cellctl.bench; and nothing in cellctl/ outside bench/ imports cellctl.bench but
+and config.py beside them, and cellctl/tablet/ (the operator's web app, a Zenoh client like any other): scan/
+imports nothing from cellctl.service, cellctl.bench, cellctl.commissioning, cellctl.tablet nor zenoh;
+service/ nothing from cellctl.bench, cellctl.commissioning nor cellctl.tablet; commissioning/ nothing from
+cellctl.service, cellctl.bench nor cellctl.tablet; tablet/ only the API and its client (no scan, no
+devices, no simulator); and nothing in cellctl/ outside bench/ imports cellctl.bench but
 cellctl/cli.py. Every import counts: absolute or relative, at the top of a module or inside a function."""
 
 import ast
@@ -23,9 +25,13 @@ FORBIDDEN = {
 }
 # room inside cellctl/ -> modules (and their submodules) it must not import
 INNER = {
-    "cellctl/scan": ("cellctl.service", "cellctl.bench", "cellctl.commissioning", "zenoh"),
-    "cellctl/service": ("cellctl.bench", "cellctl.commissioning"),
-    "cellctl/commissioning": ("cellctl.service", "cellctl.bench"),
+    "cellctl/scan": ("cellctl.service", "cellctl.bench", "cellctl.commissioning", "cellctl.tablet", "zenoh"),
+    "cellctl/service": ("cellctl.bench", "cellctl.commissioning", "cellctl.tablet"),
+    "cellctl/commissioning": ("cellctl.service", "cellctl.bench", "cellctl.tablet"),
+    # a client like any other: the API and its client, nothing of the cell's own machinery or devices
+    "cellctl/tablet": ("cellctl.scan", "cellctl.bench", "cellctl.commissioning", "cellctl.config",
+                       "cellctl.service.server", "cellctl.service.worker", "cellctl.service.store", "drivers", "sim",
+                       "pybullet", "open3d"),
 }
 BENCH_IMPORTERS = {"cellctl/cli.py"}  # the only files outside cellctl/bench/ that may import cellctl.bench
 

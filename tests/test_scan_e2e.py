@@ -53,12 +53,28 @@ def test_gnbv_covers_the_drawing(cell, scene, tmp_path):
     for entity in ("/world/captures/0", "/world/camera/image", "/world/camera/image/rgb", "/world/frontier",
                    "/world/viewpoints", "/world/view_path", "/world/drawing", "/world/candidates",
                    "/world/robot/panda_hand", "/world/robot/panda_link4", "/world/cut/cut0", "/world/cut/cut0/torch",
-                       "/world/truth/object"):
+                       "/world/truth/object", "/world/camera/image/paint", "/coverage/percent_of_true_line"):
         assert entity in paths, (entity, sorted(paths))
     assert any(p.startswith("/world/robot/panda_hand/") for p in paths)  # the hand's geometry under its transform
     saved = json.loads((run_dir / "result.json").read_text())
     assert saved["coverage_percent"] == result.coverage_percent and saved["steps"] == result.steps
     assert len(saved["viewpoints"]) == result.steps
+
+
+def test_the_recording_keeps_the_piece_dims_what_it_stands_on_and_drops_the_rest(tmp_path):
+    from cellctl.scan.recording import ROI_MARGIN_M, ScanRecorder
+
+    rec = ScanRecorder(tmp_path / "x.rrd", "x")
+    xyz = np.array([[0.2, 0.1, 0.3], [0.2, 0.1, 0.203], [0.2, 0.1, 0.25], [1.5, 0.0, 0.0], [0.2, 0.1, 0.9]])
+    rgb = np.tile(np.array([[200, 20, 20]], dtype=np.uint8), (5, 1))
+    assert rec.crop(xyz, rgb)[0] is xyz  # the piece is not known yet: everything is kept
+    rec.log_scene(np.array([[0.0, 0.0, 0.2], [0.4, 0.3, 0.5]]), np.array([[0, 1, 1]]), np.zeros((0, 3)))
+    kept, colours = rec.crop(xyz, rgb)
+    assert np.array_equal(kept, xyz[:3])  # 1.5 m off and 0.4 m above the box (margin ROI_MARGIN_M) are gone
+    assert ROI_MARGIN_M < 0.4
+    assert np.array_equal(colours[[0, 2]], rgb[[0, 2]])  # the piece keeps its colours
+    assert colours[1].min() > 150 and np.ptp(colours[1].astype(int)) < 60  # its support plane is pale grey
+    rec.close()
 
 
 @pytest.mark.parametrize("scene", ["sharp_cylinder", "t_piece", "i_beam", "basket"])

@@ -380,7 +380,12 @@ class ScanJob:
             res.capture_s += rec.capture_s
             if self.recorder:
                 self.recorder.log_robot_pose(k, self.robot.links, self.robot.link_poses(q))
-                self.recorder.log_view(k, T, self.K, self.image_size, frame.color, frame.depth, cloud.xyz, cloud.rgb)
+                c = self.pcfg.color  # the paint filter over the whole image: what the scan took for paint
+                paint = clouds.color_mask(frame.color.reshape(-1, 3), c.hue_center_deg, c.hue_halfwidth_deg, c.s_min,
+                                          c.v_min).reshape(frame.color.shape[:2])
+                self.recorder.log_view(k, T, self.K, self.image_size, frame.color, frame.depth, cloud.xyz, cloud.rgb,
+                                       paint)
+                self.recorder.log_coverage(k, len(self.drawing), rec.coverage_percent)
                 self.recorder.log_plan(k, plan.frontier, self.grid.voxel, plan.poses, plan.quality, plan.target,
                                        self.drawing.xyz)
             last = k == self.pcfg.max_steps - 1  # the step limit: no view will be captured there, so no move

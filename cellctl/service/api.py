@@ -282,6 +282,11 @@ class CellStatus(ApiModel):
     cell_id: CellId
     version: str = Field(max_length=64, description="scrapcell package version")
     mode: ModeName = Field(description=modes_help())
+    twin: bool = Field(False, description="the pybullet twin renders the scene: a job's `scene` picks the piece "
+                                          "(a tablet shows a scene picker only then)")
+    scenes: list[Annotated[str, Field(max_length=64)]] = Field(
+        default_factory=list, max_length=100, description="the built-in scene names this cell loads (a scene .yaml "
+                                                          "inside its service.scene_dirs is accepted too)")
     arm_ready: bool
     camera_ready: bool
     ready: bool = Field(description="a submitted job can start: arm and camera answer (fcisim, real: probed at start "

@@ -83,31 +83,46 @@ def _accepts_tcp(endpoint: str, timeout_s: float = 2.0) -> bool:
         return False
 
 
+def open_session(connect: list[str] | tuple[str, ...] = (DEFAULT_ENDPOINT,), *, mode: str = "client",
+                 zenoh_config_file: str | None = None) -> zenoh.Session:
+    """A Zenoh session to the cell network (a cell's endpoint or the yard router). Raises SessionRefused
+    when something answers there and refuses the session (credentials), CellUnreachable when nothing does."""
+    connect = list(connect)
+    try:
+        conf = zenoh.Config.from_file(zenoh_config_file) if zenoh_config_file else zenoh.Config()
+    except zenoh.ZError as e:
+        raise ValueError(f"Zenoh config {zenoh_config_file}: {zenoh_error(e)}") from None
+    conf.insert_json5("mode", json.dumps(mode))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as e:
+        listening = [ep for ep in connect if _accepts_tcp(ep)]
+        if listening:
+            creds = f"the user and password in {zenoh_config_file}" if zenoh_config_file else \
+                "whether it needs a user and password (--zenoh-config, see deploy/zenoh/operator.json5)"
+            raise SessionRefused(f"{', '.join(listening)} answers but refused this session: check {creds} "
+                                 f"({zenoh_error(e)})") from None
+        raise CellUnreachable(f"cannot reach the cell network at {', '.join(connect) or '(scouting)'}: "
+                              f"nothing answers there ({zenoh_error(e)})") from None
+
+
 class CellClient:
     def __init__(self, cell_id: str, connect: list[str] | tuple[str, ...] = (DEFAULT_ENDPOINT,), *,
-                 timeout_s: float = 5.0, mode: str = "client", zenoh_config_file: str | None = None):
+                 timeout_s: float = 5.0, mode: str = "client", zenoh_config_file: str | None = None,
+                 session: zenoh.Session | None = None):
+        """``session``: use this open Zenoh session (one app serving many cells, e.g. the tablet) instead
+        of opening one; it stays open when this client closes."""
         self.keys = Keys(cell_id)
         self.cell_id, self.timeout_s, self.connect = cell_id, timeout_s, list(connect)
-        try:
-            conf = zenoh.Config.from_file(zenoh_config_file) if zenoh_config_file else zenoh.Config()
-        except zenoh.ZError as e:
-            raise ValueError(f"Zenoh config {zenoh_config_file}: {zenoh_error(e)}") from None
-        conf.insert_json5("mode", json.dumps(mode))
-        if self.connect:
-            conf.insert_json5("connect/endpoints", json.dumps(self.connect))
-            conf.insert_json5("scouting/multicast/enabled", "false")
         self._subs: list[Subscription] = []
-        try:
-            self.session = zenoh.open(conf)
-        except zenoh.ZError as e:
-            listening = [ep for ep in self.connect if _accepts_tcp(ep)]
-            if listening:
-                creds = f"the user and password in {zenoh_config_file}" if zenoh_config_file else \
-                    "whether it needs a user and password (--zenoh-config, see deploy/zenoh/operator.json5)"
-                raise SessionRefused(f"{', '.join(listening)} answers but refused this session: check {creds} "
-                                     f"({zenoh_error(e)})") from None
-            raise CellUnreachable(f"cannot reach the cell network at {', '.join(self.connect) or '(scouting)'}: "
-                                  f"nothing answers there ({zenoh_error(e)})") from None
+        self._owns_session = session is None
+        if session is not None:
+            self.session = session
+            return
+        self.session = open_session(self.connect, mode=mode, zenoh_config_file=zenoh_config_file)
 
     def __enter__(self) -> CellClient:
         return self
@@ -121,7 +136,8 @@ class CellClient:
             for sub in self._subs:
                 sub.close()
             self._subs.clear()
-            self.session.close()
+            if self._owns_session:
+                self.session.close()
             self.session = None
 
     # --- queries ----------------------------------------------------------------------------------

@@ -39,6 +39,7 @@ from cellctl.service.retention import prune
 from cellctl.service.store import JobStore, StoreError, now_iso
 from cellctl.scan.spec import JobSpec
 from cellctl.service.worker import Worker, summary_from_file
+from sim.scenes.catalog import SCENE_NAMES
 
 log = logging.getLogger("cellctl.service.server")
 JSON = zenoh.Encoding.APPLICATION_JSON
@@ -305,7 +306,8 @@ class CellService:
         devices = self.devices.describe()
         if self.scfg.job_profile != "scan":  # a load-test cell must not pass for a scanning one
             devices += f"; job profile {self.scfg.job_profile}: one view, no motion, no cut"
-        return CellStatus(cell_id=self.cfg.cell_id, version=version(), mode=self.cfg.mode, arm_ready=rd.arm_ready,
+        return CellStatus(cell_id=self.cfg.cell_id, version=version(), mode=self.cfg.mode,
+                          twin=MODES[self.cfg.mode].twin, scenes=list(SCENE_NAMES), arm_ready=rd.arm_ready,
                           camera_ready=rd.camera_ready, ready=rd.ready,
                           not_ready_reason=rd.reason[:1000] if rd.reason else None, devices=devices[:200],
                           accepting_jobs=accepting, queue_length=queue_length, queue_max=self.scfg.queue_max,
