@@ -416,6 +416,16 @@ def build_parser() -> argparse.ArgumentParser:
                     help="calibrateHandEye method (default: best = every method, lowest reprojection RMS)")
     he.add_argument("--seed", type=int, default=0, help="seed of the view poses (default: 0)")
     he.add_argument("--quiet", action="store_true", help="no per-view progress lines")
+    he.add_argument("--max-residual-mm", type=float, default=2.0, metavar="MM",
+                    help="write only if the board, seen through the result, moves at most this RMS between views "
+                         "(default: 2)")
+    he.add_argument("--max-residual-deg", type=float, default=0.5, metavar="DEG",
+                    help="... and turns at most this RMS (default: 0.5)")
+    he.add_argument("--max-reproj-px", type=float, default=1.0, metavar="PX",
+                    help="... and its corners reproject within this RMS (default: 1)")
+    he.add_argument("--max-scale-error-percent", type=float, default=1.0, metavar="PCT",
+                    help="... and the depth camera finds the board within this of the size --square-mm gives "
+                         "(default: 1)")
     cb = cal_kind.add_parser("board", help="write the ChArUco board to print for hand-eye")
     cb.add_argument("--out", default="charuco.png", help="PNG to write (default: charuco.png)")
     cb.add_argument("--dpi", type=int, default=300, help="print resolution tagged in the PNG (default: 300)")

@@ -109,6 +109,20 @@ def xyz_rpy_deg(T: np.ndarray) -> tuple[list[float], list[float]]:
 
 
 # ----------------------------------------------------------------------------- detection
+def depth_scale(view: BoardView, depth: np.ndarray, board: CharucoBoardConfig) -> float | None:
+    """The depth camera's distance to the board's corners over the distance the board's printed size gives
+    (PnP): 1 when the square size told is right. PnP's scale comes only from that size, so a mis-measured
+    printout scales every board pose, and hand-eye absorbs it without a trace in its residual; the depth is
+    metric on its own. The median over the corners with a depth return; None with fewer than 4."""
+    P = (view.T_cam_board[:3, :3] @ board.corners_m[view.ids].T).T + view.T_cam_board[:3, 3]
+    h, w = depth.shape
+    col = np.clip(np.rint(view.corners_px[:, 0]).astype(int), 0, w - 1)
+    row = np.clip(np.rint(view.corners_px[:, 1]).astype(int), 0, h - 1)
+    ratio = depth[row, col] / P[:, 2]
+    ratio = ratio[np.isfinite(ratio) & (ratio > 0)]
+    return float(np.median(ratio)) if len(ratio) >= 4 else None
+
+
 def detect_board(color: np.ndarray, K: np.ndarray, board: CharucoBoardConfig, dist: np.ndarray | None = None,
                  min_corners: int = MIN_CORNERS) -> BoardView | None:
     """The board in an RGB (or grey) image and its pose T_cam_board, or None when fewer than

@@ -227,3 +227,39 @@ def test_each_mode_is_one_class_that_the_config_the_api_and_the_devices_read():
     assert check_readiness(cfg).ready
     with open_devices(cfg, load_scene("smooth_cylinder"), TwinConfig()) as dev:
         assert dev.mode == "sim" and dev.twin is not None and dev.description == MODES["sim"].describe(cfg)
+
+
+def test_the_idle_probe_asks_the_controller_without_opening_a_libfranka_session():
+    """The service probes an idle cell's arm every few seconds: that must not take the controller's one FCI
+    session (nor set its collision behaviour, as every session of the adapter does). The full check is the
+    job's own connection. franky-sim's protocol log shows what each probe did to the controller."""
+    import logging
+
+    from arm_contract import franky_config, franky_sim_server
+
+    from drivers.panda import probe
+
+    class Sessions(logging.Handler):
+        count = 0
+
+        def emit(self, record: logging.LogRecord) -> None:
+            self.count += record.getMessage().startswith("Received SetCollisionBehavior")
+
+    sessions = Sessions()
+    proto = logging.getLogger("franky_sim.franka_robot_protocol")
+    proto.addHandler(sessions)
+    try:
+        with franky_sim_server() as (_server, robot, _moves):
+            cfg = franky_config(robot.hostname)
+            cheap = probe(cfg, full=False)
+            assert cheap.ready and "robot server version 10" in cheap.message, cheap
+            assert sessions.count == 0
+            full = probe(cfg)
+            assert full.ready and "joints" in full.message, full
+            assert sessions.count >= 1  # the full check opens a session: the count sees one
+            wrong = probe(cfg.model_copy(update={"model": "panda"}), full=False)
+            assert not wrong.ready and "so it is an FR3" in wrong.message
+        gone = probe(cfg, full=False)
+        assert not gone.ready and "FCI is not active" in gone.message
+    finally:
+        proto.removeHandler(sessions)

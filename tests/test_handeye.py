@@ -216,13 +216,70 @@ def test_printable_board_has_its_size_and_is_detected(tmp_path):
     assert view is not None and len(view.ids) == (BOARD.squares_x - 1) * (BOARD.squares_y - 1)
 
 
-def test_refused_outside_the_twin(tmp_path):
-    """Until the real arm and camera are wired, a real cell's config must not get a twin calibration."""
+def test_a_cell_whose_robot_does_not_answer_fails_clearly_and_writes_nothing(tmp_path):
+    """Outside the twin the command drives the cell's own arm: with no robot at arm.host it says so (exit 1)
+    at once, and no file appears."""
+    from arm_contract import free_loopback_address
+
+    host = free_loopback_address()
     (tmp_path / "cell.yaml").write_text(
-        "mode: fcisim\narm: {host: 127.0.0.1, model: fr3, realtime: false,\n"
-        "      hand_eye: {xyz: [0.07, 0.0, 0.05], rpy_deg: [0.0, 0.0, 0.0]}}\n")
+        f"mode: fcisim\nfcisim: {{simulator: external}}\narm: {{host: {host}, model: fr3, realtime: false, "
+        f"connect_timeout_s: 1.0,\n      hand_eye: {{xyz: [0.07, 0.0, 0.05], rpy_deg: [0.0, 0.0, 0.0]}}}}\n")
     load_cell_config(tmp_path / "cell.yaml")  # a valid config
     stderr = io.StringIO()
     with contextlib.redirect_stderr(stderr):
-        assert main(["calibrate", "hand-eye", "--config", str(tmp_path / "cell.yaml")]) == 2
-    assert "twin only" in stderr.getvalue() and "fcisim" in stderr.getvalue()
+        assert main(["calibrate", "hand-eye", "--config", str(tmp_path / "cell.yaml")]) == 1
+    assert f"Franka at {host}" in stderr.getvalue() and "FCI is not active" in stderr.getvalue(), stderr.getvalue()
+    assert not (tmp_path / "hand_eye.yaml").exists()
+
+
+# ----------------------------------------------------------------------------- the cell's own arm: fcisim
+def _fcisim_cell(d, **arm):
+    """configs/cell.fcisim.yaml with the camera mounted at T_TRUE (the twin renders with the arm's extrinsic
+    in fcisim, so that is the truth the calibration must find; the default mount would not tell a copied
+    value from a measured one)."""
+    from configs import CONFIG_DIR
+
+    cell = yaml.safe_load((CONFIG_DIR / "cell.fcisim.yaml").read_text())
+    cell["arm"]["hand_eye"] = {"xyz": list(TRUE_XYZ), "rpy_deg": list(TRUE_RPY)}
+    cell["arm"].update(arm)
+    cell["planners_config"] = str(CONFIG_DIR / "planners.yaml")
+    cell["twin"]["camera"]["noise"] = True
+    path = d / "cell.yaml"
+    path.write_text(yaml.safe_dump(cell))
+    return path
+
+
+@pytest.mark.timeout(900)
+def test_on_fcisim_the_franky_arm_finds_the_true_mount_and_a_bad_board_is_not_written(tmp_path):
+    """`cellctl calibrate hand-eye --config <fcisim>`: the arm is the Franka adapter on franky-sim, the camera the
+    twin's renderer posed from the arm's measured joints, a board lies in the twin. The result is within
+    2 mm / 0.5 deg of the mount the twin renders with, and is written (the old file kept). Told the wrong
+    square size (10 % off, a mis-measured printout: its residual is as small as a good run's, since PnP's
+    scale comes from that size alone), the depth camera sees the board smaller than told: refused, nothing
+    written."""
+    cfg = _fcisim_cell(tmp_path)
+    out = tmp_path / "hand_eye.yaml"
+    out.write_text("# an older calibration\nhand_eye: {xyz: [0.07, 0.0, 0.05], rpy_deg: [0.0, 0.0, 0.0]}\n")
+    old = out.read_text()
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        rc = main(["calibrate", "hand-eye", "--config", str(cfg), "--out", str(out), "--poses", "8", "--quiet"])
+    assert rc == 0, stderr.getvalue()
+    rec = yaml.safe_load(out.read_text())
+    mm, deg = pose_error(pose_from_xyz_rpy_deg(rec["hand_eye"]["xyz"], rec["hand_eye"]["rpy_deg"]), T_TRUE)
+    assert mm < 2.0 and deg < 0.5, (mm, deg)
+    assert rec["source"] == "fcisim" and rec["twin_truth_error"]["mm"] == pytest.approx(mm, abs=0.01)
+    assert rec["depth_scale"] == pytest.approx(1.0, abs=0.01)  # the depth finds the board its printed size
+    backups = list(tmp_path.glob("hand_eye.yaml.*.bak"))
+    assert len(backups) == 1 and backups[0].read_text() == old
+    assert "method spread" in stdout.getvalue() and "kept as" in stdout.getvalue()
+
+    written = out.read_text()
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        rc = main(["calibrate", "hand-eye", "--config", str(cfg), "--out", str(out), "--poses", "8", "--quiet",
+                   "--square-mm", str(1.1 * 1000 * BOARD.square_m), "--marker-mm", str(1.1 * 1000 * BOARD.marker_m)])
+    assert rc == 1
+    assert "not written" in stderr.getvalue() and "measures the board -9" in stderr.getvalue(), stderr.getvalue()
+    assert out.read_text() == written and len(list(tmp_path.glob("hand_eye.yaml.*.bak"))) == 1

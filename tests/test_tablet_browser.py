@@ -54,27 +54,28 @@ def test_a_worker_scans_cancels_and_a_viewer_only_watches_in_a_real_browser(tmp_
 
     shots = _shots(tmp_path)
     users = {OPERATOR[0]: ("operator", OPERATOR[1]), VIEWER[0]: ("viewer", VIEWER[1])}
-    svc = ServiceProcess(tmp_path / "cell").start()
+    cell = {"svc": ServiceProcess(tmp_path / "cell").start()}  # the tour restarts it: stop whichever runs
     try:
-        with TabletProcess(tmp_path / "tablet", svc.endpoint, users) as tab, sync_playwright() as p:
+        with TabletProcess(tmp_path / "tablet", cell["svc"].endpoint, users) as tab, sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=[
                 "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"])
             page = browser.new_page(viewport={"width": 1280, "height": 860})
             page.set_default_timeout(60_000)
             try:
-                svc = _tour(page, tab, svc, shots, tmp_path)
+                _tour(page, tab, cell, shots, tmp_path)
             except BaseException:
                 page.screenshot(path=shots / "tablet-failure.png", full_page=True)
                 print(f"the page at the failure: {shots / 'tablet-failure.png'}\n{tab.log.read_text()[-3000:]}")
                 raise
             browser.close()
     finally:
-        svc.stop()
+        cell["svc"].stop()
 
 
-def _tour(page, tab, svc, shots: Path, tmp_path: Path):
+def _tour(page, tab, cell: dict, shots: Path, tmp_path: Path) -> None:
     from playwright.sync_api import expect
 
+    svc = cell["svc"]
     if True:
         if True:
 
@@ -148,7 +149,7 @@ def _tour(page, tab, svc, shots: Path, tmp_path: Path):
             expect(page.get_by_test_id("cell-sim-1")).to_contain_text("Offline", timeout=LIVE_S)
             expect(page.get_by_test_id("network")).to_be_visible(timeout=LIVE_S)
             page.screenshot(path=shots / "tablet-offline.png")
-            svc = ServiceProcess(tmp_path / "cell", port=svc.port).start()
+            svc = cell["svc"] = ServiceProcess(tmp_path / "cell", port=svc.port).start()
             expect(page.get_by_test_id("cell-sim-1")).to_contain_text("Ready", timeout=LIVE_S)
             expect(page.get_by_test_id("network")).to_be_hidden()
 
@@ -166,4 +167,3 @@ def _tour(page, tab, svc, shots: Path, tmp_path: Path):
                 expect(page.get_by_test_id("cancel")).to_have_count(0)
                 page.screenshot(path=shots / "tablet-viewer.png")
                 c.cancel(job)
-    return svc

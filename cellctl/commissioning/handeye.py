@@ -2,9 +2,9 @@
 in each frame, T_flange_cam is solved (planners/handeye.py) and written where the cell config
 reads it (``hand_eye_file``).
 
-``calibrate_hand_eye`` takes any ``Arm`` and ``RGBDCamera`` (drivers/interfaces.py): the twin
-today, the real Panda and D435 once the cell config can name them. It only trusts what a real cell
-has: the arm's joints (flange pose by our own FK, which does not involve the extrinsic) and the
+``calibrate_hand_eye`` takes any ``Arm`` and ``RGBDCamera`` (drivers/interfaces.py): the twin's
+(``run_hand_eye_in_twin``, mode sim) or the cell's own (``run_hand_eye_on_cell``: the Franka adapter with
+the D435, or on franky-sim with the twin's renderer). It only trusts what a real cell has: the arm's joints (flange pose by our own FK, which does not involve the extrinsic) and the
 images; the extrinsic the arm carries is only used to aim the views, so a rough one is enough.
 ``run_hand_eye_in_twin`` builds the twin with a board at a known pose and also reports the error
 against the twin's true extrinsic.
@@ -30,7 +30,7 @@ from configs.charuco import CharucoBoardConfig
 from configs.poses import pose_from_xyz_rpy_deg
 from drivers.interfaces import Arm, DeviceError, JointTrajectory, RGBDCamera, RGBDFrame, TrajectoryError
 from planners.handeye import (MIN_VIEWS, BoardView, HandEyeError, HandEyeSolution, board_center, calibrate,
-                              calibration_views, detect_board, pose_error, xyz_rpy_deg)
+                              calibration_views, depth_scale, detect_board, pose_error, xyz_rpy_deg)
 from planners.motion.collision import CollisionChecker, RobotCollisionModel, StaticBox
 from planners.motion.ik import Unreachable
 from planners.motion.kinematics import Kinematics
@@ -51,6 +51,7 @@ class HandEyeRun:
     truth_error: tuple[float, float] | None = None  # twin only: (mm, deg) against the true extrinsic
     T_flange_cam_true: np.ndarray | None = None  # twin only
     duration_s: float = 0.0
+    depth_scale: float | None = None  # median over the views of planners.handeye.depth_scale (1: the size is right)
 
     def record(self, cell_id: str, source: str) -> dict:
         """What the written file holds: the ``hand_eye`` block the config reads and its record."""
@@ -66,6 +67,7 @@ class HandEyeRun:
             "cell_id": cell_id,
             "source": source,
             "board_in_base": {"xyz": [round(v, 5) for v in b_xyz], "rpy_deg": [round(v, 3) for v in b_rpy]},
+            "depth_scale": None if self.depth_scale is None else round(self.depth_scale, 5),
             "by_method": s.by_method,
         }
         if self.truth_error is not None:
@@ -165,6 +167,7 @@ def calibrate_hand_eye(arm: Arm, camera: RGBDCamera, board: CharucoBoardConfig, 
     flanges: list[np.ndarray] = []
     views: list[BoardView] = []
     visits: list[dict] = []
+    scales: list[float] = []
     for k, T in enumerate(targets):
         if len(views) == n_poses:
             break
@@ -196,6 +199,9 @@ def calibrate_hand_eye(arm: Arm, camera: RGBDCamera, board: CharucoBoardConfig, 
             continue
         flanges.append(kin.fk(q, "flange"))
         views.append(view)
+        scale = depth_scale(view, frame.depth, board)
+        if scale is not None:
+            scales.append(scale)
         w, h = board.size_m
         visit.update(corners=len(view.ids), reproj_rms_px=round(view.reproj_rms_px, 3),
                      distance_m=round(float(np.linalg.norm(view.T_cam_board @ [w / 2, h / 2, 0, 1] - [0, 0, 0, 1])), 3))
@@ -208,7 +214,7 @@ def calibrate_hand_eye(arm: Arm, camera: RGBDCamera, board: CharucoBoardConfig, 
         say(f"only {len(views)} of {n_poses} views usable (all {len(targets)} targets tried)")
     solution = calibrate(np.array(flanges), views, K, board, methods=methods, dist=dist)
     return HandEyeRun(solution=solution, T_base_board_guess=T_base_board, visits=visits,
-                      duration_s=time.perf_counter() - t0)
+                      duration_s=time.perf_counter() - t0, depth_scale=float(np.median(scales)) if scales else None)
 
 
 # ----------------------------------------------------------------------------- the twin
@@ -248,28 +254,120 @@ def run_hand_eye_in_twin(cfg: CellConfig, *, n_poses: int = DEFAULT_POSES, board
     return run
 
 
+def run_hand_eye_on_cell(cfg: CellConfig, *, n_poses: int = DEFAULT_POSES, board: CharucoBoardConfig | None = None,
+                         seed: int = 0, methods: list[str] | None = None, settle_s: float = 0.5, flush_frames: int = 3,
+                         twin_board: CharucoBoardConfig | None = None,
+                         progress: Callable[[str], None] | None = None) -> HandEyeRun:
+    """Hand-eye on the cell's own arm and camera (``cfg.mode``'s devices, opened as a job opens them): the
+    Franka adapter, and the D435 (real) or the twin's renderer posed from the arm's measured joints
+    (fcisim, where a board is laid in the twin at TWIN_BOARD_XY and the twin's extrinsic is the truth the
+    result is compared with). The rough extrinsic in the config only aims the views; the board is located
+    from the arm's start pose. ``board``: the board as the operator describes it; ``twin_board`` (fcisim): the
+    one lying in the twin, by default as `cellctl calibrate board` prints it, so a mis-told size shows."""
+    mode = MODES[cfg.mode]
+    board = board or CharucoBoardConfig()
+    twin_cfg = mode.twin_config(cfg, cfg.twin)
+    with mode.open(cfg, _empty_scene(), twin_cfg) as dev:
+        if dev.twin is not None:
+            from sim.board import add_board as place_board, face_up_pose
+
+            laid = twin_board or CharucoBoardConfig()
+            place_board(dev.twin.client, face_up_pose(TWIN_BOARD_XY, yaw_deg=TWIN_BOARD_YAW_DEG, config=laid), laid)
+        # the frames' Intrinsics carry no distortion yet (issue 20): the D435's colour stream is near pinhole
+        run = calibrate_hand_eye(dev.arm, dev.camera, board, cfg.motion, n_poses=n_poses, seed=seed,
+                                 park_q=np.asarray(twin_cfg.home_q), methods=methods, settle_s=settle_s,
+                                 flush_frames=flush_frames, progress=progress)
+        truth = np.asarray(dev.twin.arm.model.T_flange_cam) if dev.twin is not None else None
+    if truth is not None:
+        run.T_flange_cam_true = truth
+        run.truth_error = pose_error(run.solution.T_flange_cam, truth)
+    return run
+
+
+@dataclass(frozen=True)
+class Acceptance:
+    """What a calibration must show before it is written where the cell reads it: the board, seen from every
+    view through the solved extrinsic, stays put in the base frame (a wrong extrinsic, a board that moved or
+    warped scatter it), its corners reproject, and the depth camera finds it the size it was told (a
+    mis-measured printout scales every board pose, which the residual cannot see)."""
+
+    max_translation_rms_mm: float = 2.0
+    max_rotation_rms_deg: float = 0.5
+    max_reproj_rms_px: float = 1.0
+    max_scale_error: float = 0.01  # the board's size by depth against the size told (a mis-measured printout)
+
+    def problems(self, run: HandEyeRun) -> list[str]:
+        r = run.solution.residual
+        out = []
+        if r.translation_rms_mm > self.max_translation_rms_mm:
+            out.append(f"the board moves {r.translation_rms_mm:.2f} mm RMS between views (at most "
+                       f"{self.max_translation_rms_mm:g})")
+        if r.rotation_rms_deg > self.max_rotation_rms_deg:
+            out.append(f"the board turns {r.rotation_rms_deg:.3f} deg RMS between views (at most "
+                       f"{self.max_rotation_rms_deg:g})")
+        if r.reproj_rms_px > self.max_reproj_rms_px:
+            out.append(f"the corners reproject {r.reproj_rms_px:.2f} px RMS off (at most {self.max_reproj_rms_px:g})")
+        if run.depth_scale is not None and abs(run.depth_scale - 1) > self.max_scale_error:
+            out.append(f"the depth camera measures the board {100 * (run.depth_scale - 1):+.1f} % off the size "
+                       f"--square-mm gives (at most {100 * self.max_scale_error:g} %): measure the printed squares")
+        return out
+
+
+def method_spread(run: HandEyeRun) -> tuple[float, float] | None:
+    """The largest distance (mm, deg) between the chosen solution and another method's."""
+    others = [pose_from_xyz_rpy_deg(m["xyz"], m["rpy_deg"]) for m in run.solution.by_method.values() if "xyz" in m]
+    if len(others) < 2:
+        return None
+    errs = np.array([pose_error(T, run.solution.T_flange_cam) for T in others])
+    return float(errs[:, 0].max()), float(errs[:, 1].max())
+
+
+def backup(path: Path) -> Path | None:
+    """Keep the calibration a new one replaces, beside it with its time (never overwritten)."""
+    if not path.is_file():
+        return None
+    stamp = datetime.datetime.fromtimestamp(path.stat().st_mtime).strftime("%Y%m%dT%H%M%S")
+    dest, n = path.with_name(f"{path.name}.{stamp}.bak"), 1
+    while dest.exists():
+        n += 1
+        dest = path.with_name(f"{path.name}.{stamp}-{n}.bak")
+    dest.write_bytes(path.read_bytes())
+    return dest
+
+
 def cli_hand_eye(args) -> int:
-    """`cellctl calibrate hand-eye`: 0 written, 1 calibration failed (the message says why)."""
+    """`cellctl calibrate hand-eye`: 0 written, 1 calibration failed or refused (the message says why)."""
     from cellctl.config import load_cell_config
 
     if args.poses < MIN_VIEWS:
         raise ValueError(f"--poses {args.poses}: hand-eye needs at least {MIN_VIEWS} views (12 or more recommended)")
     cfg, cfg_path = load_cell_config(args.config)
-    if not MODES[cfg.mode].twin_arm:  # a twin calibration written for a real arm would be a wrong extrinsic
-        raise ValueError(f"calibrate hand-eye runs in the twin only so far (mode sim); {cfg_path} has mode "
-                         f"{cfg.mode}, whose arm and camera are not wired to it yet")
     out = Path(args.out) if args.out else cfg_path.parent / "hand_eye.yaml"
     methods = None if args.method == "best" else [args.method]
     board = _board_from_args(args)
+    accept = Acceptance(args.max_residual_mm, args.max_residual_deg, args.max_reproj_px,
+                        args.max_scale_error_percent / 100)
     say = (lambda msg: print(msg, file=sys.stderr, flush=True)) if not args.quiet else None
     try:
-        run = run_hand_eye_in_twin(cfg, n_poses=args.poses, board=board, seed=args.seed, methods=methods,
-                                   progress=say)
+        if MODES[cfg.mode].twin_arm:
+            run = run_hand_eye_in_twin(cfg, n_poses=args.poses, board=board, seed=args.seed, methods=methods,
+                                       progress=say)
+        else:
+            run = run_hand_eye_on_cell(cfg, n_poses=args.poses, board=board, seed=args.seed, methods=methods,
+                                       progress=say)
     except (HandEyeError, DeviceError) as e:
         print(f"cellctl calibrate hand-eye: {e}", file=sys.stderr)
         return 1
-    write_hand_eye_file(out, run.record(cfg.cell_id, source="twin"))
-    _print_result(run, out, cfg_path)
+    problems = accept.problems(run)
+    if problems:
+        _print_result(run, None, cfg_path)
+        print(f"cellctl calibrate hand-eye: not written ({out} is unchanged): " + "; ".join(problems)
+              + ". Check that the board lies still and flat, that --square-mm/--marker-mm are what the printout "
+                "measures, and run again.", file=sys.stderr)
+        return 1
+    old = backup(out)
+    write_hand_eye_file(out, run.record(cfg.cell_id, source="twin" if MODES[cfg.mode].twin_arm else cfg.mode))
+    _print_result(run, out, cfg_path, old)
     return 0
 
 
@@ -307,7 +405,7 @@ def cli_board(args) -> int:
     return 0
 
 
-def _print_result(run: HandEyeRun, out: Path, cfg_path: Path) -> None:
+def _print_result(run: HandEyeRun, out: Path | None, cfg_path: Path, old: Path | None = None) -> None:
     s = run.solution
     r = s.residual
     xyz, rpy = xyz_rpy_deg(s.T_flange_cam)
@@ -317,11 +415,19 @@ def _print_result(run: HandEyeRun, out: Path, cfg_path: Path) -> None:
             ("residual", f"board in base: {r.translation_rms_mm:.2f} mm RMS (max {r.translation_max_mm:.2f}), "
                          f"{r.rotation_rms_deg:.3f} deg RMS (max {r.rotation_max_deg:.3f}); "
                          f"reprojection {r.reproj_rms_px:.2f} px RMS (max {r.reproj_max_px:.2f})")]
+    if run.depth_scale is not None:
+        rows.append(("board size", f"by depth {100 * (run.depth_scale - 1):+.2f} % off the size told"))
+    spread = method_spread(run)
+    if spread is not None:
+        rows.append(("method spread", f"the methods agree within {spread[0]:.2f} mm, {spread[1]:.3f} deg"))
     if run.truth_error is not None:
         rows.append(("twin truth", f"error {run.truth_error[0]:.2f} mm, {run.truth_error[1]:.3f} deg"))
-    rel = os.path.relpath(out.resolve(), cfg_path.parent.resolve())
-    rows.append(("written", f"{out}  (the config reads it with hand_eye_file: "
-                            f"{out.resolve() if rel.startswith('..') else rel} in {cfg_path.name})"))
+    if out is not None:
+        rel = os.path.relpath(out.resolve(), cfg_path.parent.resolve())
+        rows.append(("written", f"{out}  (the config reads it with hand_eye_file: "
+                                f"{out.resolve() if rel.startswith('..') else rel} in {cfg_path.name})"))
+    if old is not None:
+        rows.append(("previous", f"kept as {old}"))
     for name, m in s.by_method.items():
         if "xyz" in m:
             extra = (f", truth {m['truth_error_mm']:.2f} mm / {m['truth_error_deg']:.3f} deg"

@@ -155,12 +155,12 @@ def module_available(name: str) -> bool:
         return name in sys.modules
 
 
-def check_readiness(cfg: CellConfig, arm_host: str | None = None) -> Readiness:
-    """Never raises. sim: pybullet is there. fcisim: the franky-sim robot answers (``drivers.panda.probe``
-    connects once) and the twin can render. real: the Franka answers and the configured D435 is
-    connected with its modes (``drivers.realsense.check_devices``). Takes up to ``arm.connect_timeout_s``
-    twice (TCP connect, then the handshake) for an unreachable robot."""
-    return MODES[cfg.mode].readiness(cfg, arm_host)
+def check_readiness(cfg: CellConfig, arm_host: str | None = None, *, full: bool = True) -> Readiness:
+    """Never raises. sim: pybullet is there. fcisim: the franky-sim robot answers (``drivers.panda.probe``:
+    ``full`` connects once through libfranka, else only its handshake) and the twin can render. real: the
+    Franka answers and the configured D435 is connected with its modes (``drivers.realsense.check_devices``).
+    Takes up to ``arm.connect_timeout_s`` twice (TCP connect, then the handshake) for an unreachable robot."""
+    return MODES[cfg.mode].readiness(cfg, arm_host, full=full)
 
 
 def camera_readiness(camera_cfg) -> tuple[bool, str]:

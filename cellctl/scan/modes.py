@@ -43,8 +43,9 @@ class DeviceMode:
         """A context manager yielding the job's ``Devices``, closed on the way out (also on errors)."""
         raise NotImplementedError
 
-    def readiness(self, cfg: CellConfig, arm_host: str | None = None) -> Readiness:
-        """Whether a job could start now; never raises."""
+    def readiness(self, cfg: CellConfig, arm_host: str | None = None, *, full: bool = True) -> Readiness:
+        """Whether a job could start now; never raises. ``full`` False: the cheap probe the service runs
+        while idle (no session with the arm's controller)."""
         raise NotImplementedError
 
     def twin_config(self, cfg: CellConfig, twin_cfg: TwinConfig) -> TwinConfig:
@@ -63,12 +64,12 @@ def _twin_readiness() -> tuple[bool, str]:
     return ok, "pybullet twin" if ok else "pybullet is not installed (pip install -e .)"
 
 
-def _arm_readiness(cfg: CellConfig, arm_host: str | None) -> tuple[bool, str]:
+def _arm_readiness(cfg: CellConfig, arm_host: str | None, full: bool) -> tuple[bool, str]:
     from drivers.panda import probe
 
     arm_cfg = cfg.arm.model_copy(update={"host": arm_host}) if arm_host else cfg.arm
     try:
-        st = probe(arm_cfg)
+        st = probe(arm_cfg, full=full)
         return st.ready, st.message
     except Exception as e:  # noqa: BLE001 - probe() reports DeviceErrors; anything else is still "not ready"
         return False, f"probing the arm failed: {type(e).__name__}: {e}"
@@ -97,7 +98,7 @@ class SimMode(DeviceMode):
             twin.arm.reset(twin_cfg.home_q)
             yield Devices(self.name, twin.arm, twin.camera, twin.scene, twin, self.describe(cfg))
 
-    def readiness(self, cfg, arm_host=None) -> Readiness:
+    def readiness(self, cfg, arm_host=None, *, full=True) -> Readiness:
         from cellctl.scan.devices import Readiness
 
         ok, msg = _twin_readiness()
@@ -160,10 +161,10 @@ class FciSimMode(DeviceMode):
             yield Devices(self.name, TwinCheckedArm(franky, twin.arm), camera, twin.scene, twin,
                           self.describe(cfg, arm_cfg.host))
 
-    def readiness(self, cfg, arm_host=None) -> Readiness:
+    def readiness(self, cfg, arm_host=None, *, full=True) -> Readiness:
         from cellctl.scan.devices import Readiness
 
-        arm_ok, arm_msg = _arm_readiness(cfg, arm_host)
+        arm_ok, arm_msg = _arm_readiness(cfg, arm_host, full)
         twin_ok, twin_msg = _twin_readiness()
         return Readiness(arm_ok, twin_ok, arm_msg, "twin renderer posed from the arm" if twin_ok else twin_msg)
 
@@ -209,10 +210,10 @@ class RealMode(DeviceMode):
             camera = stack.enter_context(open_camera(cfg.camera, **rec))
             yield Devices(self.name, franky, camera, scene, None, self.describe(cfg))
 
-    def readiness(self, cfg, arm_host=None) -> Readiness:
+    def readiness(self, cfg, arm_host=None, *, full=True) -> Readiness:
         from cellctl.scan.devices import Readiness, camera_readiness
 
-        arm_ok, arm_msg = _arm_readiness(cfg, arm_host)
+        arm_ok, arm_msg = _arm_readiness(cfg, arm_host, full)
         cam_ok, cam_msg = camera_readiness(cfg.camera)
         return Readiness(arm_ok, cam_ok, arm_msg, cam_msg)
 

@@ -1,7 +1,9 @@
 """Whether the cell could start a job now, kept current: fcisim and real probe their arm and camera at
 start, every READINESS_PERIOD_S while idle and at once when poked (a refused submit, a finished job), so
-a robot switched on or a camera unplugged shows in the status. The devices have one holder at a time: a
-Franka takes one FCI client, so a probe never connects while a job holds the arm (``held``)."""
+a robot switched on or a camera unplugged shows in the status. The probe does not disturb the arm: it
+sends only libfranka's version handshake, which the controller answers without opening a session
+(``drivers.panda.probe(full=False)``); the full connection is made by the job that opens the arm. The
+devices have one holder at a time, so a probe never runs while a job holds them (``held``)."""
 
 from __future__ import annotations
 
@@ -81,7 +83,7 @@ class DeviceWatch:
             if self._sim_error:
                 rd = Readiness(False, True, self._sim_error, "twin renderer posed from the arm")
             else:
-                rd = check_readiness(self.cfg, self.arm_host)
+                rd = check_readiness(self.cfg, self.arm_host, full=False)
         finally:
             self.held.release()
         if rd != self._readiness:

@@ -151,6 +151,16 @@ def model_of_server_version(version: int) -> str:
     return "panda" if version <= 5 else "fr3"
 
 
+def checked_server_version(cfg: FrankaConfig) -> int:
+    """``preflight``, and the robot it finds is the model the config names (DeviceError if not)."""
+    version = preflight(cfg.host, cfg.connect_timeout_s)
+    if model_of_server_version(version) != cfg.model:
+        which = "an FR3" if model_of_server_version(version) == "fr3" else "a Panda"
+        raise DeviceError(f"Franka at {cfg.host} speaks robot server version {version}, so it is {which}, "
+                          f"but arm.model is {cfg.model!r}: its limits would be wrong")
+    return version
+
+
 def _explain_connect_error(host: str, e: BaseException) -> str:
     name, msg = type(e).__name__, str(e)
     if name == "IncompatibleVersionException":
@@ -287,12 +297,7 @@ class FrankaArm(Arm, Recoverable, EventLog, MotionLog, MotionCounter):
         if self._robot is not None:
             return
         cfg = self.config
-        version = preflight(cfg.host, cfg.connect_timeout_s)
-        if model_of_server_version(version) != cfg.model:
-            which = "an FR3" if model_of_server_version(version) == "fr3" else "a Panda"
-            raise DeviceError(f"Franka at {cfg.host} speaks robot server version {version}, so it is {which}, "
-                              f"but arm.model is {cfg.model!r}: its limits would be wrong")
-        self.server_version = version
+        self.server_version = checked_server_version(cfg)
         rt = franky.RealtimeConfig.Enforce if cfg.realtime else franky.RealtimeConfig.Ignore
         owner = _Owner(f"franky-{cfg.host}")
 
@@ -673,8 +678,19 @@ def _model_mismatch(config: FrankaConfig, robot: "franky.Robot") -> str | None:
     return None
 
 
-def probe(config: FrankaConfig) -> ArmStatus:
-    """Connect once and disconnect: what the service reports for the arm, never an exception."""
+def probe(config: FrankaConfig, *, full: bool = True) -> ArmStatus:
+    """What the service reports for the arm, never an exception. ``full``: connect once through libfranka
+    and disconnect (a session: the controller's one FCI client for that while). Not ``full``: only the
+    handshake ``preflight`` sends, which a controller answers without opening a session, so a cell can
+    ask every few seconds while idle without disturbing the arm (or someone else's FCI client); the
+    full check then happens when a job opens the arm."""
+    if not full:
+        try:
+            v = checked_server_version(config)
+            return ArmStatus(True, f"{config.model} at {config.host} answers with FCI active (robot server version "
+                                   f"{v}); the full check is at job start")
+        except DeviceError as e:
+            return ArmStatus(False, str(e))
     try:
         with FrankaArm(config) as arm:
             q = arm.joint_positions()
