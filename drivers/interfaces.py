@@ -18,6 +18,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from configs.lens import NO_DISTORTION, distorted
+
 
 class DeviceError(RuntimeError):
     """A device is missing, disconnected or returned something unusable."""
@@ -29,7 +31,9 @@ class TrajectoryError(RuntimeError):
 
 @dataclass(frozen=True)
 class Intrinsics:
-    """Pinhole intrinsics of the (color-aligned) depth image."""
+    """Intrinsics of the (colour-aligned) depth image: the pinhole and the lens's distortion, as the
+    device (or its .bag) reports it (librealsense's model name and five coefficients, configs/lens.py).
+    Every pixel becomes a ray through ``configs.lens.deproject``; the twin's renderer is a pinhole."""
 
     width: int
     height: int
@@ -37,6 +41,17 @@ class Intrinsics:
     fy: float
     cx: float
     cy: float
+    model: str = "None"
+    coeffs: tuple[float, ...] = NO_DISTORTION
+
+    @property
+    def distorted(self) -> bool:
+        return distorted(self.model, self.coeffs)
+
+    @property
+    def lens(self) -> tuple[str, tuple[float, ...]] | None:
+        """(model, coefficients) when the lens distorts, for ``planners.clouds``; None for a pinhole."""
+        return (self.model, self.coeffs) if self.distorted else None
 
     def matrix(self) -> np.ndarray:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])

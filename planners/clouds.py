@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+from configs.lens import deproject
+
 
 @dataclass
 class Cloud:
@@ -33,9 +35,11 @@ class Cloud:
         return Cloud(self.xyz[mask], self.rgb[mask], self.origin[mask])
 
 
-def depth_to_camera_points(depth: np.ndarray, K: np.ndarray, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def depth_to_camera_points(depth: np.ndarray, K: np.ndarray, stride: int = 1,
+                           lens: tuple[str, tuple[float, ...]] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Back-project valid depth pixels into the optical frame. Returns (points (N,3) float32,
-    flat pixel indices (N,) into the full image). Non-finite and non-positive depths are no return."""
+    flat pixel indices (N,) into the full image). Non-finite and non-positive depths are no return.
+    ``lens``: the camera's (distortion model, coefficients) (``Intrinsics.lens``); None for a pinhole."""
     if depth.ndim != 2:
         raise ValueError(f"depth must be a 2-D image, got shape {depth.shape}")
     h, w = depth.shape
@@ -46,7 +50,10 @@ def depth_to_camera_points(depth: np.ndarray, K: np.ndarray, stride: int = 1) ->
     u = us[ok].astype(np.float32)
     v = vs[ok].astype(np.float32)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    pts = np.stack([(u - cx) * z / fx, (v - cy) * z / fy, z], axis=1).astype(np.float32)
+    x, y = (u - cx) / fx, (v - cy) / fy
+    if lens is not None:
+        x, y = deproject(x.astype(np.float64), y.astype(np.float64), *lens)
+    pts = np.stack([x * z, y * z, z], axis=1).astype(np.float32)
     return pts, (vs[ok] * w + us[ok]).astype(np.int64)
 
 
@@ -56,13 +63,13 @@ def transform_points(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 
 def frame_to_base_cloud(color: np.ndarray, depth: np.ndarray, K: np.ndarray, T_base_cam: np.ndarray,
-                        stride: int = 1, pixels: bool = False):
+                        stride: int = 1, pixels: bool = False, lens: tuple[str, tuple[float, ...]] | None = None):
     """The paper's ^bT_k ^cC_k: one frame's coloured cloud in the base frame; with `pixels`, also
     the flat pixel index of each point, so a sparser set of the same frame's rays is a selection
     (`on_stride`), not a second back-projection."""
     if not np.all(np.isfinite(T_base_cam)):
         raise ValueError("camera pose contains NaN/inf")
-    pts, idx = depth_to_camera_points(depth, K, stride)
+    pts, idx = depth_to_camera_points(depth, K, stride, lens)
     rgb = color.reshape(-1, 3)[idx]
     origin = np.broadcast_to(T_base_cam[:3, 3].astype(np.float32), pts.shape)
     cloud = Cloud(transform_points(T_base_cam, pts), rgb, origin)

@@ -347,3 +347,49 @@ def test_a_bag_that_fails_half_way_is_not_left_behind(twin_frames, tmp_path):
 def test_relative_bag_paths_resolve_against_the_config_file(tmp_path):
     (tmp_path / "cell.yaml").write_text("cell_id: real-1\ncamera:\n  bag: rec/session.bag\n")
     assert load_realsense_config(tmp_path / "cell.yaml").bag == tmp_path / "rec" / "session.bag"
+
+
+def _through_lens(frame, model: str, coeffs: tuple[float, ...]):
+    """The twin's pinhole frame as a camera with this lens would have taken it: each pixel of the new image
+    looks along its own ray (``configs.lens.deproject``) and takes the pinhole image's nearest pixel there
+    (colour, and depth along the optical axis, which the lens does not change)."""
+    from configs.lens import deproject
+    from drivers.interfaces import RGBDFrame
+
+    K = frame.intrinsics
+    v, u = np.mgrid[0:K.height, 0:K.width].astype(np.float64)
+    x, y = deproject((u - K.cx) / K.fx, (v - K.cy) / K.fy, model, coeffs)
+    up, vp = np.rint(x * K.fx + K.cx).astype(int), np.rint(y * K.fy + K.cy).astype(int)
+    inside = (up >= 0) & (up < K.width) & (vp >= 0) & (vp < K.height)
+    up, vp = np.clip(up, 0, K.width - 1), np.clip(vp, 0, K.height - 1)
+    depth = np.where(inside, frame.depth[vp, up], np.nan).astype(np.float32)
+    color = np.where(inside[..., None], frame.color[vp, up], 0).astype(np.uint8)
+    lensed = Intrinsics(K.width, K.height, K.fx, K.fy, K.cx, K.cy, model=model, coeffs=coeffs)
+    return RGBDFrame(color, depth, lensed, frame.timestamp)
+
+
+@pytest.mark.parametrize("model", ["Brown Conrady", "Inverse Brown Conrady"])
+def test_a_bag_whose_stream_carries_distortion_gives_the_true_surface(twin_frames, tmp_path, model):
+    """The lens's model and coefficients go from the bag's camera_info into every frame's intrinsics, and the
+    cloud is made through them: the points lie on the surface the pinhole twin saw. Ignoring them (taking
+    the intrinsics on trust as a pinhole) bends the surface by centimetres at the image's edge."""
+    from scipy.spatial import cKDTree
+
+    coeffs = (0.12, -0.05, 0.001, -0.0008, 0.01)
+    ref, T_base_cam = twin_frames[0]
+    bag = write_bag(tmp_path / "lens.bag", [_through_lens(ref, model, coeffs)])
+    with RealSenseBag(bag) as cam:
+        got = cam.capture()
+    assert got.intrinsics.model == model and got.intrinsics.coeffs == pytest.approx(coeffs)
+    assert got.intrinsics.lens == (model, got.intrinsics.coeffs)
+    truth = cKDTree(frame_to_base_cloud(ref.color, ref.depth, ref.intrinsics.matrix(), T_base_cam).xyz)
+    with_lens = frame_to_base_cloud(got.color, got.depth, got.intrinsics.matrix(), T_base_cam,
+                                    lens=got.intrinsics.lens)
+    as_pinhole = frame_to_base_cloud(got.color, got.depth, got.intrinsics.matrix(), T_base_cam)
+    d_lens, _ = truth.query(with_lens.xyz)
+    d_pinhole, _ = truth.query(as_pinhole.xyz)
+    assert len(with_lens.xyz) > 10_000
+    # nearest-pixel resampling and 1 mm depth units: within a few mm everywhere
+    assert np.median(d_lens) < 0.001 and np.percentile(d_lens, 99) < 0.004, (np.median(d_lens), d_lens.max())
+    assert np.percentile(d_pinhole, 99) > 3 * np.percentile(d_lens, 99), (np.percentile(d_pinhole, 99),
+                                                                          np.percentile(d_lens, 99))

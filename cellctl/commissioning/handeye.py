@@ -273,15 +273,29 @@ def run_hand_eye_on_cell(cfg: CellConfig, *, n_poses: int = DEFAULT_POSES, board
 
             laid = twin_board or CharucoBoardConfig()
             place_board(dev.twin.client, face_up_pose(TWIN_BOARD_XY, yaw_deg=TWIN_BOARD_YAW_DEG, config=laid), laid)
-        # the frames' Intrinsics carry no distortion yet (issue 20): the D435's colour stream is near pinhole
         run = calibrate_hand_eye(dev.arm, dev.camera, board, cfg.motion, n_poses=n_poses, seed=seed,
                                  park_q=np.asarray(twin_cfg.home_q), methods=methods, settle_s=settle_s,
-                                 flush_frames=flush_frames, progress=progress)
+                                 flush_frames=flush_frames, dist=opencv_dist(dev.camera.intrinsics, progress),
+                                 progress=progress)
         truth = np.asarray(dev.twin.arm.model.T_flange_cam) if dev.twin is not None else None
     if truth is not None:
         run.T_flange_cam_true = truth
         run.truth_error = pose_error(run.solution.T_flange_cam, truth)
     return run
+
+
+def opencv_dist(intr, progress: Callable[[str], None] | None = None) -> np.ndarray | None:
+    """The camera's distortion as OpenCV's (k1, k2, p1, p2, k3): librealsense's Brown-Conrady has the same
+    model and order. Other models have no OpenCV equivalent: the board is then detected as if through a
+    pinhole, and said so."""
+    if not intr.distorted:
+        return None
+    if intr.model == "Brown Conrady":
+        return np.asarray(intr.coeffs, dtype=np.float64)
+    if progress:
+        progress(f"the colour stream's {intr.model} distortion {intr.coeffs} has no OpenCV equivalent: the board "
+                 f"is detected as through a pinhole")
+    return None
 
 
 @dataclass(frozen=True)

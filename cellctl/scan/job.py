@@ -264,7 +264,8 @@ class ScanJob:
         """ProcessClouds of §IV-B plus the grid update. Returns on the arm itself (at joints q) are
         dropped first: the arm must not become an obstacle to itself."""
         g = self.pcfg.grid
-        cloud, pixels = clouds.frame_to_base_cloud(frame.color, frame.depth, self.K, T_base_cam, pixels=True)
+        cloud, pixels = clouds.frame_to_base_cloud(frame.color, frame.depth, self.K, T_base_cam, pixels=True,
+                                                   lens=frame.intrinsics.lens)
         keep = self._off_robot(cloud, q)
         if keep is not None:
             cloud, pixels = cloud.select(keep), pixels[keep]

@@ -4,37 +4,18 @@ depth-to-colour extrinsic, and the colour pixels whose centres it covers take it
 colour camera's axis; where two footprints overlap, the nearer surface wins. A footprint covers the centres in [corner0, corner1),
 so equal intrinsics and an identity extrinsic map every pixel onto itself, bit for bit.
 
-Distortion follows librealsense's formulas for its models (``rs2_project_point_to_pixel`` and
-``rs2_deproject_pixel_to_point``): (Modified) Brown-Conrady distorts on projection and is inverted
-by fixed-point iteration on deprojection; Inverse Brown-Conrady the other way round."""
+Distortion follows librealsense's formulas for its models (configs/lens.py)."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from configs import lens
 from drivers.realsense.bag_format import StreamModel
 
-_INVERT_ITERATIONS = 10  # librealsense's count for its iterative undistortion
 #: A footprint wider than this many colour pixels is a surface nearer than any the D435 measures
 #: (depth resolution far below colour resolution); its extra pixels are not filled.
 MAX_FOOTPRINT_PX = 8
-
-
-def _distort(x: np.ndarray, y: np.ndarray, model: str, k: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
-    r2 = x * x + y * y
-    f = 1 + k[0] * r2 + k[1] * r2 * r2 + k[4] * r2 * r2 * r2
-    if model == "Modified Brown Conrady":
-        x, y = x * f, y * f
-        return x + 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x), y + 2 * k[3] * x * y + k[2] * (r2 + 2 * y * y)
-    return x * f + 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x), y * f + 2 * k[3] * x * y + k[2] * (r2 + 2 * y * y)
-
-
-def _undistort(xd: np.ndarray, yd: np.ndarray, model: str, k: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
-    x, y = xd.copy(), yd.copy()
-    for _ in range(_INVERT_ITERATIONS):
-        dx, dy = _distort(x, y, model, k)
-        x, y = x + (xd - dx), y + (yd - dy)
-    return x, y
 
 
 def project(points: np.ndarray, s: StreamModel) -> tuple[np.ndarray, np.ndarray]:
@@ -42,9 +23,7 @@ def project(points: np.ndarray, s: StreamModel) -> tuple[np.ndarray, np.ndarray]
     z = points[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         x, y = points[:, 0] / z, points[:, 1] / z
-    if s.distorted:
-        fwd = s.model != "Inverse Brown Conrady"
-        x, y = (_distort if fwd else _undistort)(x, y, s.model, s.coeffs)
+    x, y = lens.project(x, y, s.model, s.coeffs)
     K = s.intrinsics
     return x * K.fx + K.cx, y * K.fy + K.cy
 
@@ -53,9 +32,7 @@ def deproject(u: np.ndarray, v: np.ndarray, z: np.ndarray, s: StreamModel) -> np
     """Pixel coordinates and depth along the optical axis -> (N, 3) points in the stream's frame."""
     K = s.intrinsics
     x, y = (u - K.cx) / K.fx, (v - K.cy) / K.fy
-    if s.distorted:
-        inv = s.model == "Inverse Brown Conrady"
-        x, y = (_distort if inv else _undistort)(x, y, s.model, s.coeffs)
+    x, y = lens.deproject(x, y, s.model, s.coeffs)
     return np.stack([x * z, y * z, z], axis=1)
 
 

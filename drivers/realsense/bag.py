@@ -354,5 +354,4 @@ def _stream_model(cam, tf, path: Path, what: str) -> StreamModel:
         if not np.all(np.isfinite(t)):
             raise DeviceError(f"{path}: the {what} stream's extrinsic translation is not finite: {t.tolist()}")
     return StreamModel(Intrinsics(width=w, height=h, fx=float(K[0]), fy=float(K[4]), cx=float(K[2]),
-                                  cy=float(K[5])),
-                       model=model, coeffs=coeffs, R=R, t=t)
+                                  cy=float(K[5]), model=model, coeffs=coeffs), R=R, t=t)

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from configs.lens import DISTORTION_MODELS  # noqa: F401 - the bag's model names, read by bag.py
 from drivers.interfaces import Intrinsics
 
 FILE_VERSION = 4
@@ -23,8 +24,6 @@ string encoding
 bool is_recommended
 """
 
-#: librealsense's distortion model names (rs2_distortion_to_string) that are pinhole-plus-polynomial.
-DISTORTION_MODELS = ("None", "Brown Conrady", "Modified Brown Conrady", "Inverse Brown Conrady")
 
 
 def typestore():
@@ -40,19 +39,25 @@ def typestore():
 
 @dataclass(frozen=True)
 class StreamModel:
-    """One image stream as the bag describes it: its pinhole intrinsics, librealsense distortion
-    model and its five coefficients, and the extrinsic from the reference stream to this stream
+    """One image stream as the bag describes it: its intrinsics (with the librealsense distortion model
+    and its five coefficients), and the extrinsic from the reference stream to this stream
     (``p_stream = R @ p_ref + t``, librealsense's rs2_extrinsics)."""
 
     intrinsics: Intrinsics
-    model: str = "Brown Conrady"
-    coeffs: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
     R: np.ndarray | None = None  # (3, 3); None = identity
     t: np.ndarray | None = None  # (3,) metres; None = zero
 
     @property
+    def model(self) -> str:
+        return self.intrinsics.model
+
+    @property
+    def coeffs(self) -> tuple[float, ...]:
+        return self.intrinsics.coeffs
+
+    @property
     def distorted(self) -> bool:
-        return self.model != "None" and any(c != 0.0 for c in self.coeffs)
+        return self.intrinsics.distorted
 
     def from_reference(self) -> np.ndarray:
         """4x4 transform taking reference-stream coordinates to this stream's."""

@@ -173,8 +173,8 @@ class BagWriter:
             self._put(f"{stream}/info", "realsense_msgs/msg/StreamInfo", t,
                       T["realsense_msgs/msg/StreamInfo"](fps=self.fps, encoding=encoding, is_recommended=True))
             info = T["sensor_msgs/msg/CameraInfo"](
-                header=self._header(0, t), height=K.height, width=K.width, distortion_model="Brown Conrady",
-                D=np.zeros(5), K=kmat, R=np.eye(3).reshape(-1), P=pmat, binning_x=0, binning_y=0,
+                header=self._header(0, t), height=K.height, width=K.width, distortion_model=K.model,
+                D=np.asarray(K.coeffs, dtype=np.float64), K=kmat, R=np.eye(3).reshape(-1), P=pmat, binning_x=0, binning_y=0,
                 roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
             self._put(f"{stream}/info/camera_info", "sensor_msgs/msg/CameraInfo", t, info)
             self._put(f"{stream}/tf/0", "geometry_msgs/msg/Transform", t, T["geometry_msgs/msg/Transform"](
