@@ -33,12 +33,44 @@ def _scan(args: argparse.Namespace) -> int:
     try:
         result, run_dir = run_job(JobSpec(cfg, cfg_path, args.scene, args.planner, seed=args.seed,
                                           noise=not args.no_noise, out=args.out, max_steps=args.max_steps,
-                                          cut=not args.no_cut, dry_run_cut=args.dry_run_cut),
+                                          cut=not args.no_cut, dry_run_cut=args.dry_run_cut, record=args.record),
                                   Hooks(progress=not args.quiet))
     except DeviceError as e:  # fcisim/real: the arm or camera did not open (the message says why)
         print(f"cellctl scan: {e}", file=sys.stderr)
         return 3
     _print_summary(result, run_dir)
+    return 0 if result.error is None else 1
+
+
+def _replay(args: argparse.Namespace) -> int:
+    import json
+
+    from cellctl.config import load_cell_config
+    from cellctl.scan.replay import compare
+    from cellctl.scan.run import run_job
+    from cellctl.scan.spec import Hooks, JobSpec
+    from drivers.interfaces import DeviceError
+
+    folder = Path(args.folder)
+    try:
+        rec = json.loads((folder / "result.json").read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{folder}: no readable result.json of a recorded job ({e})") from None
+    cfg, cfg_path = load_cell_config(args.config)
+    spec = JobSpec(cfg, cfg_path, rec["scene_ref"], rec["planner"], out=args.out, cut=rec.get("cut") is not None,
+                   replay_from=folder)
+    try:
+        result, run_dir = run_job(spec, Hooks(progress=not args.quiet))
+    except DeviceError as e:
+        print(f"cellctl replay: {e}", file=sys.stderr)
+        return 3
+    c = compare(folder, run_dir)
+    print(f"replayed {folder} into {run_dir}")
+    for key, (a, b) in ((k, v) for k, v in c.items() if k != "drawing_distance_mm"):
+        print(f"  {key:<18} recorded {a}  replayed {b}")
+    if c["drawing_distance_mm"]:
+        med, p99 = c["drawing_distance_mm"]
+        print(f"  drawing            replayed points lie {med:.2f} mm (median), {p99:.2f} mm (99 %) from the recorded")
     return 0 if result.error is None else 1
 
 
@@ -277,7 +309,19 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-cut", action="store_true", help="stop after the scan: no cutting path")
     s.add_argument("--dry-run-cut", action="store_true",
                    help="run the cutting path in the twin (torch off) and report the tip's tracking error")
+    s.add_argument("--record", action="store_true",
+                   help="record the job's frames (capture.bag) and arm positions (capture_arm.jsonl) into its folder, "
+                        "so that `cellctl replay` can run it again")
     s.set_defaults(func=_scan)
+
+    rp = sub.add_parser("replay", help="run a recorded job (cellctl scan --record) again from its folder: its bag "
+                                       "through the RealSense bag player, its arm positions, the same scan code")
+    rp.add_argument("folder", help="the recorded job's folder (result.json, capture.bag, capture_arm.jsonl)")
+    rp.add_argument("--config", default=None, help="cell config YAML (its planners config; default: "
+                                                   "configs/cell.sim.yaml)")
+    rp.add_argument("--out", default=None, help="runs folder for the replay (default: the config's runs_dir)")
+    rp.add_argument("--quiet", action="store_true", help="no per-step progress lines")
+    rp.set_defaults(func=_replay)
     b = sub.add_parser("bench", help="scan every (scene, planner, seed) in the twin and report beside the paper's "
                                      "Table II", description="Exit status: 0 all runs ok, 1 some run failed "
                                      "(recorded as an error row), 2 bad arguments or config.")

@@ -63,6 +63,9 @@ class ServiceConfig(BaseModel):
                                         "run after it restarts, in their order (the one that was running ends "
                                         "interrupted); false: they end interrupted too, for the operator to submit "
                                         "again")
+    record_jobs: bool = Field(False, description="record every job's frames (capture.bag) and arm positions "
+                              "(capture_arm.jsonl) into its folder, so `cellctl replay <job folder>` can run it again "
+                              "(about 4 MB a view)")
     job_timeout_s: float = Field(900.0, gt=0, le=86400, description="a job running longer is cancelled and failed")
     retention_days: float | None = Field(None, gt=0, le=36500, description="an ended job's folder is deleted this long after "
                                          "it ended (its record stays); none: kept until retention_gb needs room")

@@ -4,6 +4,8 @@ run folder."""
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -154,7 +156,7 @@ def _run_scan(spec: JobSpec, hooks: Hooks) -> tuple[ScanResult, Path]:
     unsaved: list[str] = []
     try:  # whatever happens, the run folder ends with a result.json and a closed recording
         try:
-            with open_devices(cfg, scene, twin_cfg, run_dir=run_dir, arm_host=spec.arm_host) as dev:
+            with _devices(spec, scene, twin_cfg, run_dir) as dev:
                 scene = dev.scene  # as placed in the twin (a fault may have moved it)
                 recorder.log_scene(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points)
                 job = ScanJob(dev.arm, dev.camera, planner, pcfg, cfg.motion, recorder, report,
@@ -183,6 +185,25 @@ def _run_scan(spec: JobSpec, hooks: Hooks) -> tuple[ScanResult, Path]:
         write_result(run_dir, spec, result)
         recorder.close()
     return result, run_dir
+
+
+@contextmanager
+def _devices(spec: JobSpec, scene: Scene, twin_cfg: TwinConfig, run_dir: Path):
+    """The job's devices: its mode's (recorded when ``spec.record``), or a recorded job's (``spec.replay_from``)."""
+    if spec.replay_from is not None:
+        from cellctl.scan.replay import replay_devices
+
+        with replay_devices(spec.replay_from, scene) as dev:
+            yield dev
+        return
+    with open_devices(spec.cfg, scene, twin_cfg, run_dir=run_dir, arm_host=spec.arm_host) as dev:
+        if not spec.record:
+            yield dev
+            return
+        from cellctl.scan.replay import recording
+
+        with recording(dev, run_dir) as rec:
+            yield rec
 
 
 def _keep_views(job: ScanJob, run_dir: Path, scene, pcfg, planner: str, result: ScanResult) -> list[str]:

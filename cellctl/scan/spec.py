@@ -18,7 +18,9 @@ class JobSpec:
     which it is pickled). ``profile``: "scan", the whole job, or "initial_view", its first view only (a
     cheap real job for load tests). ``run_dir``: write into this folder (the service's per-job folder),
     else into a new stamped one under ``out`` (default: the cell's runs_dir). ``arm_host``: fcisim, a
-    franky-sim already running there (the service's own) instead of the config's choice."""
+    franky-sim already running there (the service's own) instead of the config's choice. ``record``: the
+job's captured frames and arm positions go into its folder; ``replay_from``: run on such a recording
+instead of the mode's devices (cellctl.scan.replay)."""
 
     cfg: CellConfig
     cfg_path: Path
@@ -33,6 +35,8 @@ class JobSpec:
     run_dir: Path | None = None
     out: str | None = None
     arm_host: str | None = None
+    record: bool = False  # write the job's frames and arm positions into its folder (cellctl.scan.replay)
+    replay_from: Path | None = None  # a recorded job's folder: its recording is the devices
 
 
 @dataclass(frozen=True)

@@ -467,7 +467,8 @@ class CellService:
             if not ctl.cancel.is_set():
                 spec = JobSpec(self.cfg, self.cfg_path, scene, req.planner, profile=self.scfg.job_profile,
                                seed=req.seed, noise=req.noise, max_steps=req.max_steps, dry_run_cut=req.dry_run_cut,
-                               run_dir=job_dir, arm_host=self.devices.arm_host)
+                               run_dir=job_dir, arm_host=self.devices.arm_host,
+                               record=self.scfg.record_jobs and self.scfg.job_profile == "scan")
                 out = self._job_worker.run(spec, ctl.cancel, on_step=on_step, on_phase=on_phase,
                                            stopped_as=lambda: STOPPED_AS.get(ctl.reason, "cancelled"))
                 summary, error, crashed = out.summary, out.error, out.crashed
