@@ -460,6 +460,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="calibrateHandEye method (default: best = every method, lowest reprojection RMS)")
     he.add_argument("--seed", type=int, default=0, help="seed of the view poses (default: 0)")
     he.add_argument("--quiet", action="store_true", help="no per-view progress lines")
+    he.add_argument("--board-pose", type=float, nargs=6, default=None, metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
+                    help="where the board lies in the base frame (m, fixed-axis deg), to aim the views at; its "
+                         "frame is OpenCV's: origin at the outer corner of the top-left square, x along the printed "
+                         "columns, y along the rows, z into the board (a board lying face up has roll 180); "
+                         "default: located from where the arm stands")
     he.add_argument("--max-residual-mm", type=float, default=2.0, metavar="MM",
                     help="write only if the board, seen through the result, moves at most this RMS between views "
                          "(default: 2)")

@@ -111,6 +111,24 @@ def _doctor(*args: str) -> subprocess.CompletedProcess:
                           text=True, timeout=300)  # a liveness bound
 
 
+def test_doctor_says_when_the_installed_libfranka_cannot_drive_the_configured_robot(tmp_path):
+    """The installed franky's libfranka against arm.model: a Panda (FER) needs libfranka < 0.10, an FR3 >= 0.10;
+    the other model is MISSING with the franky build to install."""
+    from cellctl.commissioning.doctor import libfranka_version
+
+    lf = libfranka_version()
+    assert lf is not None
+    other = "panda" if tuple(int(x) for x in lf.split(".")[:2]) >= (0, 10) else "fr3"
+    doc = real_cell(free_loopback_address())
+    doc["arm"]["model"] = other
+    p = tmp_path / "cell.yaml"
+    p.write_text(yaml.safe_dump(doc))
+    out = _doctor("--config", str(p)).stdout
+    line = next(ln for ln in out.splitlines() if ln.split()[1:2] == ["franky"])
+    assert line.startswith("  MISSING") and f"arm.model is {other}" in line, out
+    assert ("libfranka-0.9.2" if other == "panda" else "franky-control==2.0.0") in out
+
+
 def test_doctor_says_what_is_missing_here(tmp_path):
     host = free_loopback_address()
     p = tmp_path / "cell.yaml"
@@ -125,6 +143,10 @@ def test_doctor_says_what_is_missing_here(tmp_path):
     assert lines["robot"].startswith("  MISSING") and f"Franka at {host}" in out and "FCI is not active" in out
     assert "activate FCI" in out  # the fix
     assert "built with libfranka" in lines["franky"]
+    lf = lines["franky"].split("built with libfranka ")[1].split()[0]
+    fits_fr3 = tuple(int(x) for x in lf.split(".")[:2]) >= (0, 10)  # the FER (Panda) needs < 0.10, the FR3 >= 0.10
+    assert lines["franky"].startswith("  ok" if fits_fr3 == (real_cell(host)["arm"]["model"] == "fr3") else
+                                      "  MISSING"), lines["franky"]
     # this machine's own state, whatever it is, reported as such
     rules = UDEV_RULES.is_file() or any(r.is_file() for r in UDEV_RULES_ALTERNATIVES)
     assert lines["udev"].startswith("  ok" if rules else "  MISSING"), lines["udev"]

@@ -21,7 +21,7 @@ from configs.charuco import CharucoBoardConfig
 from configs.poses import pose_from_xyz_rpy_deg
 from planners.config import ConfigError
 from planners.handeye import (METHODS, HandEyeError, calibrate, calibration_views, corners_in_view, detect_board,
-                              pose_error, solve_hand_eye)
+                              pose_error, solve_hand_eye, xyz_rpy_deg)
 from sim.board import add_board, face_up_pose
 from sim.config import HandEyeConfig, TwinConfig
 from sim.twin import Twin
@@ -283,3 +283,24 @@ def test_on_fcisim_the_franky_arm_finds_the_true_mount_and_a_bad_board_is_not_wr
     assert rc == 1
     assert "not written" in stderr.getvalue() and "measures the board -9" in stderr.getvalue(), stderr.getvalue()
     assert out.read_text() == written and len(list(tmp_path.glob("hand_eye.yaml.*.bak"))) == 1
+
+
+def test_a_board_pose_given_aims_the_views_without_locating_it(tmp_path):
+    """--board-pose: the views are aimed at the pose given (no locating view from the start pose)."""
+    from cellctl.commissioning.handeye import TWIN_BOARD_XY
+
+    cell = CellConfig(twin=twin_config()).model_dump(mode="json")
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump(cell))
+    given = face_up_pose(TWIN_BOARD_XY, config=BOARD)
+    xyz, rpy = xyz_rpy_deg(given)
+    out = tmp_path / "hand_eye.yaml"
+    stderr = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(stderr):
+        rc = main(["calibrate", "hand-eye", "--config", str(tmp_path / "cell.yaml"), "--out", str(out), "--poses", "6",
+                   "--board-pose", *map(str, [*xyz, *rpy])])
+    assert rc == 0, stderr.getvalue()
+    assert "board located" not in stderr.getvalue()  # not looked for: it was given
+    rec = yaml.safe_load(out.read_text())
+    found = pose_from_xyz_rpy_deg(rec["board_in_base"]["xyz"], rec["board_in_base"]["rpy_deg"])
+    mm, deg = pose_error(found, given)
+    assert mm < 5 and deg < 1, (mm, deg)

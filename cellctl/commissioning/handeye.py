@@ -229,6 +229,7 @@ def _empty_scene():
 def run_hand_eye_in_twin(cfg: CellConfig, *, n_poses: int = DEFAULT_POSES, board: CharucoBoardConfig | None = None,
                          board_xy: tuple[float, float] = TWIN_BOARD_XY, board_yaw_deg: float = TWIN_BOARD_YAW_DEG,
                          seed: int = 0, methods: list[str] | None = None, add_board: bool = True,
+                         T_base_board: np.ndarray | None = None,
                          progress: Callable[[str], None] | None = None) -> HandEyeRun:
     """The twin of ``cfg`` with nothing in it but a board lying face up at ``board_xy``; the arm
     starts at home and the board is located from there, as on the real cell. The twin's own
@@ -243,7 +244,8 @@ def run_hand_eye_in_twin(cfg: CellConfig, *, n_poses: int = DEFAULT_POSES, board
             place_board(twin.client, face_up_pose(board_xy, yaw_deg=board_yaw_deg, config=board), board)
         twin.arm.reset(cfg.twin.home_q)
         run = calibrate_hand_eye(twin.arm, twin.camera, board, cfg.motion, n_poses=n_poses, seed=seed,
-                                 park_q=np.asarray(cfg.twin.home_q), methods=methods, progress=progress)
+                                 T_base_board=T_base_board, park_q=np.asarray(cfg.twin.home_q), methods=methods,
+                                 progress=progress)
         truth = np.asarray(twin.arm.model.T_flange_cam)
     run.T_flange_cam_true = truth
     run.truth_error = pose_error(run.solution.T_flange_cam, truth)
@@ -256,7 +258,7 @@ def run_hand_eye_in_twin(cfg: CellConfig, *, n_poses: int = DEFAULT_POSES, board
 
 def run_hand_eye_on_cell(cfg: CellConfig, *, n_poses: int = DEFAULT_POSES, board: CharucoBoardConfig | None = None,
                          seed: int = 0, methods: list[str] | None = None, settle_s: float = 0.5, flush_frames: int = 3,
-                         twin_board: CharucoBoardConfig | None = None,
+                         twin_board: CharucoBoardConfig | None = None, T_base_board: np.ndarray | None = None,
                          progress: Callable[[str], None] | None = None) -> HandEyeRun:
     """Hand-eye on the cell's own arm and camera (``cfg.mode``'s devices, opened as a job opens them): the
     Franka adapter, and the D435 (real) or the twin's renderer posed from the arm's measured joints
@@ -274,7 +276,8 @@ def run_hand_eye_on_cell(cfg: CellConfig, *, n_poses: int = DEFAULT_POSES, board
             laid = twin_board or CharucoBoardConfig()
             place_board(dev.twin.client, face_up_pose(TWIN_BOARD_XY, yaw_deg=TWIN_BOARD_YAW_DEG, config=laid), laid)
         run = calibrate_hand_eye(dev.arm, dev.camera, board, cfg.motion, n_poses=n_poses, seed=seed,
-                                 park_q=np.asarray(twin_cfg.home_q), methods=methods, settle_s=settle_s,
+                                 T_base_board=T_base_board, park_q=np.asarray(twin_cfg.home_q), methods=methods,
+                                 settle_s=settle_s,
                                  flush_frames=flush_frames, dist=opencv_dist(dev.camera.intrinsics, progress),
                                  progress=progress)
         truth = np.asarray(dev.twin.arm.model.T_flange_cam) if dev.twin is not None else None
@@ -362,13 +365,14 @@ def cli_hand_eye(args) -> int:
     accept = Acceptance(args.max_residual_mm, args.max_residual_deg, args.max_reproj_px,
                         args.max_scale_error_percent / 100)
     say = (lambda msg: print(msg, file=sys.stderr, flush=True)) if not args.quiet else None
+    given = pose_from_xyz_rpy_deg(args.board_pose[:3], args.board_pose[3:]) if args.board_pose else None
     try:
         if MODES[cfg.mode].twin_arm:
             run = run_hand_eye_in_twin(cfg, n_poses=args.poses, board=board, seed=args.seed, methods=methods,
-                                       progress=say)
+                                       T_base_board=given, progress=say)
         else:
             run = run_hand_eye_on_cell(cfg, n_poses=args.poses, board=board, seed=args.seed, methods=methods,
-                                       progress=say)
+                                       T_base_board=given, progress=say)
     except (HandEyeError, DeviceError) as e:
         print(f"cellctl calibrate hand-eye: {e}", file=sys.stderr)
         return 1
