@@ -112,7 +112,7 @@ def xyz_rpy_deg(T: np.ndarray) -> tuple[list[float], list[float]]:
 def depth_scale(view: BoardView, depth: np.ndarray, board: CharucoBoardConfig) -> float | None:
     """The depth camera's distance to the board's corners over the distance the board's printed size gives
     (PnP): 1 when the square size told is right. PnP's scale comes only from that size, so a mis-measured
-    printout scales every board pose, and hand-eye absorbs it without a trace in its residual; the depth is
+    printout scales every board pose, and hand-eye absorbs part of it into the extrinsic; the depth is
     metric on its own. The median over the corners with a depth return; None with fewer than 4."""
     P = (view.T_cam_board[:3, :3] @ board.corners_m[view.ids].T).T + view.T_cam_board[:3, 3]
     h, w = depth.shape

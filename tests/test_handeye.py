@@ -255,9 +255,8 @@ def test_on_fcisim_the_franky_arm_finds_the_true_mount_and_a_bad_board_is_not_wr
     """`cellctl calibrate hand-eye --config <fcisim>`: the arm is the Franka adapter on franky-sim, the camera the
     twin's renderer posed from the arm's measured joints, a board lies in the twin. The result is within
     2 mm / 0.5 deg of the mount the twin renders with, and is written (the old file kept). Told the wrong
-    square size (10 % off, a mis-measured printout: its residual is as small as a good run's, since PnP's
-    scale comes from that size alone), the depth camera sees the board smaller than told: refused, nothing
-    written."""
+    square size (10 % off, a mis-measured printout), the run is refused (the depth camera sees the board
+    9 % smaller than told, and the board scatters) and nothing is written."""
     cfg = _fcisim_cell(tmp_path)
     out = tmp_path / "hand_eye.yaml"
     out.write_text("# an older calibration\nhand_eye: {xyz: [0.07, 0.0, 0.05], rpy_deg: [0.0, 0.0, 0.0]}\n")

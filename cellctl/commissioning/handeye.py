@@ -306,7 +306,8 @@ class Acceptance:
     """What a calibration must show before it is written where the cell reads it: the board, seen from every
     view through the solved extrinsic, stays put in the base frame (a wrong extrinsic, a board that moved or
     warped scatter it), its corners reproject, and the depth camera finds it the size it was told (a
-    mis-measured printout scales every board pose, which the residual cannot see)."""
+    mis-measured printout scales every board pose; hand-eye absorbs part of that into the extrinsic, so the
+    residual grows with it only in part, while the depth measures the scale itself)."""
 
     max_translation_rms_mm: float = 2.0
     max_rotation_rms_deg: float = 0.5
