@@ -273,6 +273,10 @@ def test_on_fcisim_the_franky_arm_finds_the_true_mount_and_a_bad_board_is_not_wr
     backups = list(tmp_path.glob("hand_eye.yaml.*.bak"))
     assert len(backups) == 1 and backups[0].read_text() == old
     assert "method spread" in stdout.getvalue() and "kept as" in stdout.getvalue()
+    # the cell's config now reads the calibration (it named none), the one before is kept
+    assert "now reads it" in stdout.getvalue() and len(list(tmp_path.glob("cell.yaml.*.bak"))) == 1
+    loaded, _ = load_cell_config(cfg)
+    assert loaded.arm.hand_eye.xyz == pytest.approx(rec["hand_eye"]["xyz"])
 
     written = out.read_text()
     stdout, stderr = io.StringIO(), io.StringIO()

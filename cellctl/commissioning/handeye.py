@@ -353,6 +353,28 @@ def backup(path: Path) -> Path | None:
     return dest
 
 
+def point_config_at(cfg_path: Path, hand_eye_path: Path) -> str:
+    """Make a cell config read a new calibration: a config that names no ``hand_eye_file`` gets one appended
+    (the config kept as a .bak first, its comments untouched); one that names another file is left as it
+    is. Returns what happened, in words."""
+    from configs.loading import safe_load
+
+    text = cfg_path.read_text()
+    current = (safe_load(text) or {}).get("hand_eye_file")
+    rel = os.path.relpath(hand_eye_path.resolve(), cfg_path.parent.resolve())
+    if current and (cfg_path.parent / current).resolve() == hand_eye_path.resolve():
+        return f"{cfg_path.name} reads it (hand_eye_file: {current})"
+    if current:
+        return f"{cfg_path.name} still reads {current}: set hand_eye_file: {rel} there to use the new calibration"
+    old = backup(cfg_path)
+    stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
+    tmp = cfg_path.with_name(cfg_path.name + ".tmp")
+    tmp.write_text(text + ("" if text.endswith("\n") else "\n")
+                   + f"hand_eye_file: {rel}   # cellctl calibrate hand-eye, {stamp}\n")
+    os.replace(tmp, cfg_path)
+    return f"{cfg_path.name} now reads it (hand_eye_file: {rel} added; the config before is kept as {old.name})"
+
+
 def cli_hand_eye(args) -> int:
     """`cellctl calibrate hand-eye`: 0 written, 1 calibration failed or refused (the message says why)."""
     from cellctl.config import load_cell_config
@@ -387,6 +409,8 @@ def cli_hand_eye(args) -> int:
     old = backup(out)
     write_hand_eye_file(out, run.record(cfg.cell_id, source="twin" if MODES[cfg.mode].twin_arm else cfg.mode))
     _print_result(run, out, cfg_path, old)
+    if not MODES[cfg.mode].twin_arm:  # a real cell's config reads its calibration; the twin's demo config is left
+        print(f"  config         {point_config_at(cfg_path, out)}")
     return 0
 
 
