@@ -41,7 +41,11 @@ def test_a_recorded_twin_job_replays_to_the_same_views_coverage_and_drawing(reco
     assert (run_dir / BAG).stat().st_size > 0
     lines = (run_dir / ARM_LOG).read_text().splitlines()
     assert json.loads(lines[0])["model"]["joint_names"][0] == "panda_joint1"
-    assert len(lines) >= 1 + result.steps  # the model, the start, a position per motion
+    entries = [json.loads(x) for x in lines[1:]]
+    captures = [e for e in entries if "capture" in e]
+    assert [e["capture"] for e in captures] == list(range(1, result.steps + 1))  # every view, numbered as in the bag
+    assert all(e["wall"] > 0 for e in entries) and all("timestamp" in e for e in captures)
+    assert len(entries) - len(captures) >= result.steps  # the start, a position per motion
     rc, out, err = _replay(run_dir, tmp_path)
     assert rc == 0, err
     replayed = next(p for p in tmp_path.iterdir() if p.is_dir())
@@ -61,7 +65,8 @@ def test_a_recording_cut_short_fails_the_replay_with_the_reason(recorded, tmp_pa
     for name in ("result.json", BAG):
         (short / name).write_bytes((run_dir / name).read_bytes())
     lines = (run_dir / ARM_LOG).read_text().splitlines()
-    (short / ARM_LOG).write_text("\n".join(lines[:3]) + "\n")  # the model, the start, one motion
+    positions = [x for x in lines[1:] if '"q"' in x]
+    (short / ARM_LOG).write_text("\n".join([lines[0], *positions[:2]]) + "\n")  # the model, the start, one motion
     rc, _, _ = _replay(short, tmp_path / "out")
     assert rc == 1
     replayed = next((tmp_path / "out").iterdir())

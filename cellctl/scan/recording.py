@@ -24,7 +24,7 @@ JPEG_QUALITY = 90
 RECORD_VOXEL_M = 0.004
 ROI_MARGIN_M = 0.1  # context kept round the piece's box
 SUPPORT_BAND_M = 0.01  # points this close above the piece's lowest point lie on what it stands on
-PAINT_OVERLAY = (0, 230, 255, 150)
+PAINT_OVERLAY = (0, 230, 255, 210)
 LABEL_SPACING_M = 0.04  # gap labels nearer than this to one already shown are left out (they would overlap)  # cyan: stands out on red paint and grey steel
 
 

@@ -3,7 +3,8 @@
 Recording (``JobSpec.record``) wraps the job's devices: every frame the job captures goes into
 ``capture.bag`` (a RealSense .bag, written by ``drivers.realsense.bag_writer``) and every position the arm
 reached into ``capture_arm.jsonl`` (its joints and camera pose, with each motion's planned end), with the
-arm's model in the first line. The job is handed each frame as the bag will give it back (depth in the
+arm's model in the first line; each position and each capture there carries its wall-clock time, and each
+capture the camera's own timestamp (the bag's clock only orders the frames). The job is handed each frame as the bag will give it back (depth in the
 bag's units, as a real D435 delivers it), so a replay sees exactly what the recorded job saw.
 
 Replaying (``cellctl replay <job folder>``) opens ``capture.bag`` with ``drivers.realsense.RealSenseBag``
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,8 +55,8 @@ class RecordingCamera(RGBDCamera):
     """Passes the job's camera on, writing each frame to the bag and handing back the frame as the bag will
     play it (depth rounded to the bag's depth unit)."""
 
-    def __init__(self, camera: RGBDCamera, writer: BagWriter) -> None:
-        self._camera, self._writer = camera, writer
+    def __init__(self, camera: RGBDCamera, writer: BagWriter, log) -> None:
+        self._camera, self._writer, self._log = camera, writer, log
         self.intrinsics = camera.intrinsics
         # what RealSenseBag computes from the bag's depth unit (float32 in the bag's metadata)
         self._scale = float(1.0 / np.float32(writer.depth_unit_m))
@@ -64,6 +66,9 @@ class RecordingCamera(RGBDCamera):
         depth = depth_to_metres(depth_to_units(frame.depth, self._writer.depth_unit_m).astype(np.uint16), self._scale)
         played = RGBDFrame(frame.color, depth, frame.intrinsics, frame.timestamp)
         self._writer.add(played)
+        self._log.write(json.dumps({"capture": self._writer.frames, "timestamp": frame.timestamp,
+                                    "wall": time.time()}) + "\n")
+        self._log.flush()
         return played
 
 
@@ -84,7 +89,7 @@ class RecordingArm(ArmWrapper):
     def _position(self, planned_end, error: str | None) -> None:
         self._write({"q": self._arm.joint_positions().tolist(), "T_base_cam": self._arm.camera_pose().tolist(),
                      "planned_end": None if planned_end is None else np.asarray(planned_end).tolist(),
-                     "error": error})
+                     "error": error, "wall": time.time()})
 
     def execute(self, trajectory: JointTrajectory) -> float:
         end = np.asarray(trajectory.positions)[-1]
@@ -117,7 +122,7 @@ class ReplayArm(Arm):
         self.model = _model(lines[0]["model"])
         self._positions = [_Position(np.asarray(p["q"], dtype=np.float64), np.asarray(p["T_base_cam"], dtype=np.float64),
                                      None if p["planned_end"] is None else np.asarray(p["planned_end"]), p["error"])
-                           for p in lines[1:]]
+                           for p in lines[1:] if "q" in p]  # the captures' lines only time the frames
         if not self._positions:
             raise DeviceError(f"{path}: the recording has no arm position")
         self._at = 0
@@ -156,7 +161,7 @@ def recording(dev: Devices, run_dir: Path) -> Iterator[Devices]:
     run_dir = Path(run_dir)
     with open(run_dir / ARM_LOG, "w") as log, BagWriter(run_dir / BAG, dev.camera.intrinsics,
                                                         depth_unit_m=DEPTH_UNIT_M) as writer:
-        yield Devices(dev.mode, RecordingArm(dev.arm, log), RecordingCamera(dev.camera, writer), dev.scene, dev.twin,
+        yield Devices(dev.mode, RecordingArm(dev.arm, log), RecordingCamera(dev.camera, writer, log), dev.scene, dev.twin,
                       dev.description + "; recorded")
 
 
