@@ -106,40 +106,52 @@ def register(cfg: TabletConfig, yard: Yard, accounts: Accounts) -> None:
     def cells_page():
         if (login := frame("Cells")) is not None:
             return login
-        shown: list = [None]
-
-        @ui.refreshable
-        def grid():
-            cells = yard.cells()
-            if not cells:
-                ui.label("No cell found on the network yet.").classes("text-xl q-pa-md")
-            with ui.row().classes("q-pa-md gap-6"):
-                for c in cells:
-                    _cell_card(c)
+        empty = ui.label("No cell found on the network yet.").classes("text-xl q-pa-md")
+        row = ui.row().classes("q-pa-md gap-6")
+        cards: dict[str, CellCard] = {}
 
         def refresh():
-            key = tuple(_card_key(c) for c in yard.cells())
-            if key != shown[0]:
-                shown[0] = key
-                grid.refresh()
+            """Cards are made once and their text changed in place: a card redrawn under a finger would
+            lose the tap."""
+            cells = yard.cells()
+            empty.set_visibility(not cells)
+            for c in cells:
+                if c.cell_id not in cards:
+                    with row:
+                        cards[c.cell_id] = CellCard(c.cell_id)
+                cards[c.cell_id].show(c)
 
-        shown[0] = tuple(_card_key(c) for c in yard.cells())  # drawn now: the timer redraws only on a change
-        grid()
+        refresh()
         ui.timer(cfg.refresh_s, refresh)
 
     def _card_key(c: CellView):
         s = c.status
         return (c.cell_id, c.online, c.error, s and (s.ready, s.not_ready_reason, s.running_job, s.queue_length))
 
-    def _cell_card(c: CellView):
-        s = c.status
-        with ui.card().classes("cell-card q-pa-lg").props(f"data-testid=cell-{c.cell_id}") \
-                .on("click", lambda _=None, cid=c.cell_id: ui.navigate.to(f"/cell/{cid}")):
-            ui.label(c.cell_id).classes("text-3xl font-bold")
-            for text, colour in _cell_lines(c):
-                ui.label(text).classes(f"text-xl text-{colour}")
-            if s is not None:
-                ui.label(f"{s.devices} ({s.mode})").classes("text-base text-grey-8")
+    class CellCard:
+        """One cell's card: its lines are labels whose text and colour change, never new elements."""
+
+        LINES = 4
+
+        def __init__(self, cell_id: str) -> None:
+            with ui.card().classes("cell-card q-pa-lg").props(f"data-testid=cell-{cell_id}") \
+                    .on("click", lambda _=None: ui.navigate.to(f"/cell/{cell_id}")):
+                ui.label(cell_id).classes("text-3xl font-bold")
+                self.lines = [ui.label().classes("text-xl") for _ in range(self.LINES)]
+                self.devices = ui.label().classes("text-base text-grey-8")
+            self._colours = [""] * self.LINES
+
+        def show(self, c: CellView) -> None:
+            lines = _cell_lines(c)
+            for k, label in enumerate(self.lines):
+                text, colour = lines[k] if k < len(lines) else ("", "")
+                label.text = text
+                if colour != self._colours[k]:
+                    label.classes(remove=f"text-{self._colours[k]}" if self._colours[k] else None,
+                                  add=f"text-{colour}" if colour else None)
+                    self._colours[k] = colour
+                label.set_visibility(bool(text))
+            self.devices.text = f"{c.status.devices} ({c.status.mode})" if c.status is not None else ""
 
     def _cell_lines(c: CellView) -> list[tuple[str, str]]:
         s = c.status
@@ -238,10 +250,12 @@ def register(cfg: TabletConfig, yard: Yard, accounts: Accounts) -> None:
 
         async def load_jobs():
             try:
-                shown[1] = await run.io_bound(lambda: yard.client(cell_id).jobs(limit=30))
+                jobs = await run.io_bound(lambda: yard.client(cell_id).jobs(limit=30))
             except NET_ERRORS as e:
-                shown[1] = f"Cannot read the jobs: {_say(e)}"
-            history.refresh()
+                jobs = f"Cannot read the jobs: {_say(e)}"
+            if jobs != shown[1]:  # redrawn only when it changed: a row redrawn under a finger loses the tap
+                shown[1] = jobs
+                history.refresh()
 
         last = [None, None]
 
