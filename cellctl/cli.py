@@ -436,7 +436,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--users", default=None, help="user:password file (default: the config's dictionary_file)")
     r.set_defaults(func=_router)
     tb = sub.add_parser("tablet", help="serve the operator's tablet web app (a Zenoh client of the cells, "
-                                       "docs/OPERATORS.md)")
+                                       "README, 'For operators')")
     tb.add_argument("--config", default=str(CONFIG_DIR / "tablet.yaml"), help="tablet config (configs/tablet.yaml)")
     tb.add_argument("--add-user", metavar="NAME", default=None,
                     help="add (or replace) a page login instead of serving; the password is asked for, or read "

@@ -26,6 +26,12 @@ class ColorFilter(_Strict):
     s_min: float = Field(0.5, ge=0, le=1)
     v_min: float = Field(0.15, ge=0, le=1)
 
+    def mask(self, rgb: np.ndarray) -> np.ndarray:
+        """Which of the (N, 3) uint8 colours are paint (``planners.clouds.color_mask`` with this range)."""
+        from planners.clouds import color_mask
+
+        return color_mask(rgb, self.hue_center_deg, self.hue_halfwidth_deg, self.s_min, self.v_min)
+
 
 class GridConfig(_Strict):
     """The probabilistic occupancy grid (log-odds per cell) over a bounded workspace."""

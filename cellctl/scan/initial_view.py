@@ -45,7 +45,7 @@ def run_initial_view(spec: JobSpec, hooks: Hooks) -> tuple[ScanResult, Path]:
         g, c = pcfg.grid, pcfg.color
         cloud = clouds.frame_to_base_cloud(frame.color, frame.depth, K, T, lens=frame.intrinsics.lens)
         surface = clouds.voxel_dedup(cloud, g.surface_voxel_m)
-        paint = clouds.color_mask(surface.rgb, c.hue_center_deg, c.hue_halfwidth_deg, c.s_min, c.v_min)
+        paint = c.mask(surface.rgb)
         drawing = surface.select(paint)
         cov = coverage(drawing.xyz, scene.gt_points, pcfg.coverage_voxel_m)
         t2 = time.perf_counter()

@@ -281,8 +281,7 @@ class ScanJob:
         self.empty_frames = 0
         self.frames_without_depth = 0
         self.surface = self._surface_total.add(cloud)
-        c = self.pcfg.color
-        paint = clouds.color_mask(cloud.rgb, c.hue_center_deg, c.hue_halfwidth_deg, c.s_min, c.v_min)
+        paint = self.pcfg.color.mask(cloud.rgb)
         self.drawing = self._drawing_total.add(cloud.select(paint))
         # the rays that carve free space: every integrate_stride_px-th pixel of the same filtered frame
         rays = cloud.select(clouds.on_stride(pixels, frame.depth.shape[1], g.integrate_stride_px))
@@ -381,9 +380,8 @@ class ScanJob:
             res.capture_s += rec.capture_s
             if self.recorder:
                 self.recorder.log_robot_pose(k, self.robot.links, self.robot.link_poses(q))
-                c = self.pcfg.color  # the paint filter over the whole image: what the scan took for paint
-                paint = clouds.color_mask(frame.color.reshape(-1, 3), c.hue_center_deg, c.hue_halfwidth_deg, c.s_min,
-                                          c.v_min).reshape(frame.color.shape[:2])
+                # the paint filter over the whole image: what the scan took for paint
+                paint = self.pcfg.color.mask(frame.color.reshape(-1, 3)).reshape(frame.color.shape[:2])
                 self.recorder.log_view(k, T, self.K, self.image_size, frame.color, frame.depth, cloud.xyz, cloud.rgb,
                                        paint)
                 self.recorder.log_coverage(k, len(self.drawing), rec.coverage_percent)

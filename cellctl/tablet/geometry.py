@@ -11,6 +11,7 @@ import numpy as np
 import trimesh
 
 from cellctl.service.client import CellClient
+from planners.clouds import voxel_keys
 
 FILES = ("cut_path.json", "drawing.ply", "surface.ply")
 TORCH_AXES = 24  # torch axes drawn along all cuts together: enough to read the tilt, few enough to read at all
@@ -45,7 +46,7 @@ def thin(xyz: np.ndarray, n_max: int, *extra: np.ndarray) -> tuple[np.ndarray, .
     lo, hi = xyz.min(0), xyz.max(0)
     voxel = max(float(np.max(hi - lo)) / np.sqrt(n_max), 1e-4)  # a surface: points ~ (extent / voxel)^2
     while True:
-        _, keep = np.unique(np.floor((xyz - lo) / voxel).astype(np.int64), axis=0, return_index=True)
+        _, keep = np.unique(voxel_keys(xyz - lo, voxel), return_index=True)
         if len(keep) <= n_max:
             keep.sort()
             return (xyz[keep], *(e[keep] for e in extra))
