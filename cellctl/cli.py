@@ -109,7 +109,7 @@ def _client(args: argparse.Namespace):
     from cellctl.service.client import CellClient
 
     return CellClient(args.cell, args.connect or ["tcp/127.0.0.1:7447"], timeout_s=args.reply_timeout,
-                      zenoh_config_file=args.zenoh_config)
+                      zenoh_config_file=args.zenoh_config, tls_ca=args.ca)
 
 
 def _remote(fn):
@@ -290,6 +290,9 @@ def _client_args(p: argparse.ArgumentParser) -> None:
                    help="seconds to wait for a reply (default: 5); no reply = cell down or access denied")
     p.add_argument("--zenoh-config", default=None, metavar="JSON5",
                    help="Zenoh client config with your credentials (transport/auth/usrpwd) for a yard router")
+    p.add_argument("--ca", default=None, metavar="FILE",
+                   help="the yard's CA certificate, for a tls/ endpoint (deploy/make-certs.sh; or set "
+                        "transport.link.tls.root_ca_certificate in the --zenoh-config file)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -432,8 +435,11 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("router", help="run a Zenoh router for the yard (cells and tablets connect to it)")
     r.add_argument("--config", default=None, help="router JSON5 config (default: deploy/zenoh/router.json5)")
     r.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
-                   help="listen endpoint, e.g. tcp/127.0.0.1:7447 (repeatable; default: the config's)")
+                   help="listen endpoint, TLS only, e.g. tls/0.0.0.0:7447 (repeatable; default: the config's)")
     r.add_argument("--users", default=None, help="user:password file (default: the config's dictionary_file)")
+    r.add_argument("--tls-cert", default=None, help="the router's certificate (default: the config's; "
+                   "deploy/make-certs.sh makes it)")
+    r.add_argument("--tls-key", default=None, help="the router's private key (default: the config's)")
     r.set_defaults(func=_router)
     tb = sub.add_parser("tablet", help="serve the operator's tablet web app (a Zenoh client of the cells, "
                                        "README, 'For operators')")
@@ -537,7 +543,10 @@ def _router(args: argparse.Namespace) -> int:
     from cellctl.service.router import main as router_main
 
     argv = (["--config", args.config] if args.config else []) + [a for e in (args.listen or []) for a in ("--listen", e)]
-    return router_main(argv + (["--users", args.users] if args.users else []))
+    for flag in ("users", "tls_cert", "tls_key"):
+        if getattr(args, flag):
+            argv += ["--" + flag.replace("_", "-"), getattr(args, flag)]
+    return router_main(argv)
 
 
 def _tablet(args: argparse.Namespace) -> int:

@@ -54,6 +54,9 @@ class ServiceConfig(BaseModel):
     connect: list[Endpoint] = Field(default_factory=list, max_length=8)
     zenoh_config_file: str | None = Field(None, description="optional JSON5 Zenoh config (credentials, TLS) "
                                           "that the fields above are applied on top of; relative to this file")
+    tls_ca_file: str | None = Field(None, min_length=1, max_length=500,
+                                    description="the yard's CA certificate (deploy/make-certs.sh), needed for a tls/ "
+                                    "`connect` endpoint (the yard router listens on TLS only); relative to this file")
     scene_dirs: list[Annotated[str, Field(min_length=1, max_length=500, pattern=r"^[^\x00-\x1f\x7f]+$")]] = Field(
         default_factory=lambda: ["scenes"], max_length=16,
         description="a job may name a scene .yaml only inside these directories, symlinks resolved (relative to "

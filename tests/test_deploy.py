@@ -1,5 +1,6 @@
-"""deploy/: the router config with authentication and access control, run as `cellctl router` on
-loopback. Credentials are made at test time by deploy/make-users.sh (none live in the repo)."""
+"""deploy/: the router config with TLS, authentication and access control, run as `cellctl router` on
+loopback. Credentials and certificates are made at test time by deploy/make-users.sh and
+deploy/make-certs.sh (none live in the repo)."""
 
 from __future__ import annotations
 
@@ -31,9 +32,19 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def client(endpoint: str, user: str | None = None, password: str | None = None) -> "zenoh.Session":
+def make_certs(d: Path, *names: str) -> Path:
+    """The yard CA and a router certificate for ``names`` in ``d``, by the shipped script."""
+    for args in (["ca"], ["router", *(names or ("localhost", "127.0.0.1"))]):
+        subprocess.run(["sh", str(ROOT / "deploy/make-certs.sh"), str(d), *args], check=True, capture_output=True,
+                       timeout=60)
+    return d
+
+
+def client(endpoint: str, ca: Path | None, user: str | None = None, password: str | None = None) -> "zenoh.Session":
     c = zenoh.Config()
     c.insert_json5("mode", '"client"')
+    if ca is not None:
+        c.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(ca)))
     c.insert_json5("connect/endpoints", json.dumps([endpoint]))
     c.insert_json5("scouting/multicast/enabled", "false")
     if user is not None:
@@ -54,15 +65,17 @@ def router(tmp_path_factory):
                    timeout=30)
     pw = {u: (d / f"{u}.password").read_text().strip() for u in users}
     assert len(set(pw.values())) == len(users) and all(len(p) >= 16 for p in pw.values())
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    make_certs(d / "tls")
+    endpoint = f"tls/127.0.0.1:{free_port()}"
     proc = subprocess.Popen([sys.executable, "-m", "cellctl.service.router",
                              "--config", str(ROOT / "deploy/zenoh/router.json5"),
-                             "--listen", endpoint, "--users", str(d / "zenoh-users.txt")],
+                             "--listen", endpoint, "--users", str(d / "zenoh-users.txt"),
+                             "--tls-cert", str(d / "tls/router.crt"), "--tls-key", str(d / "tls/router.key")],
                             cwd=ROOT, stderr=subprocess.PIPE, text=True)
     try:
         line = proc.stderr.readline()
         assert "listening" in line, line
-        yield endpoint, pw, proc
+        yield endpoint, pw, proc, d / "tls/ca.crt"
     finally:
         if proc.poll() is None:
             proc.send_signal(signal.SIGTERM)
@@ -73,17 +86,19 @@ def router(tmp_path_factory):
                 pytest.fail(f"the router did not exit within {EXIT_S:g} s of SIGTERM")
 
 
-def _creds(tmp: Path, user: str, password: str) -> str:
+def _creds(tmp: Path, user: str, password: str, ca: Path) -> str:
     """The shipped example client config of the user's role (deploy/zenoh/), filled in as its comments
-    say: so the examples are the configs every test through the router uses."""
+    say (its password, and the yard CA's path): so the examples are the configs every test through the
+    router uses."""
     role = "cell" if user.startswith("cell-") else user
     text = (ROOT / "deploy/zenoh" / f"{role}.json5").read_text()
     if role == "cell":
         text = text.replace("cell-<cell_id>", user)
     placeholder = "<PASSWORD>"
     assert placeholder in text, f"deploy/zenoh/{role}.json5 has no {placeholder}"
+    assert "/etc/scrapcell/tls/ca.crt" in text, f"deploy/zenoh/{role}.json5 names no CA"
     f = tmp / f"{user}.json5"
-    f.write_text(text.replace(placeholder, password))
+    f.write_text(text.replace(placeholder, password).replace("/etc/scrapcell/tls/ca.crt", str(ca)))
     return str(f)
 
 
@@ -95,17 +110,17 @@ def test_two_cells_behind_the_router_one_operator_and_a_viewer(router, tmp_path)
     from cellctl.service.client import CellClient, NoReply
     from cellctl.service.loopback import write_config
 
-    endpoint, pw, _ = router
+    endpoint, pw, _, ca = router
     cells = {}
     try:
         for cid in (CELL, "sim-2"):
             user = f"cell-{cid}"
             cfg = write_config(tmp_path / f"{cid}.yaml", free_port(), tmp_path / f"data-{cid}", cell_id=cid,
                                zenoh_mode="client", listen=[], connect=[endpoint],
-                               zenoh_config_file=_creds(tmp_path, user, pw[user]))
+                               zenoh_config_file=_creds(tmp_path, user, pw[user], ca))
             cells[cid] = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "serve", "--config", str(cfg)],
                                           cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        op_creds = _creds(tmp_path, "operator", pw["operator"])
+        op_creds = _creds(tmp_path, "operator", pw["operator"], ca)
         with CellClient(CELL, [endpoint], timeout_s=REPLY_S, zenoh_config_file=op_creds) as c1, \
                 CellClient("sim-2", [endpoint], timeout_s=REPLY_S, zenoh_config_file=op_creds) as c2:
             for c in (c1, c2):
@@ -122,7 +137,7 @@ def test_two_cells_behind_the_router_one_operator_and_a_viewer(router, tmp_path)
         with CellClient("sim-2", [endpoint], timeout_s=REPLY_S, zenoh_config_file=op_creds) as c2:
             listed = c2.jobs()
             assert listed.cell_id == "sim-2" and [j.job_id for j in listed.jobs] == [jobs["sim-2"]]  # its own only
-        viewer_creds = _creds(tmp_path, "viewer", pw["viewer"])
+        viewer_creds = _creds(tmp_path, "viewer", pw["viewer"], ca)
         # the commands the ACL denies get no reply at all: each waits out its whole timeout, so theirs is
         # shorter than REPLY_S, yet still far longer than an allowed reply takes on a loaded machine
         with CellClient(CELL, [endpoint], timeout_s=REPLY_S, zenoh_config_file=viewer_creds) as v, \
@@ -146,9 +161,9 @@ def test_two_cells_behind_the_router_one_operator_and_a_viewer(router, tmp_path)
 
 @pytest.mark.parametrize("user,password", [("operator", "not-the-password"), (None, None), ("intruder", "x")])
 def test_sessions_without_valid_credentials_are_refused(router, user, password):
-    endpoint, _, _ = router
+    endpoint, _, _, ca = router
     with pytest.raises(Exception, match="Unable to connect"):
-        client(endpoint, user, password).close()
+        client(endpoint, ca, user, password).close()
 
 
 def test_a_wrong_password_and_a_router_that_is_down_are_told_apart(router, tmp_path):
@@ -156,13 +171,13 @@ def test_a_wrong_password_and_a_router_that_is_down_are_told_apart(router, tmp_p
     password in this file), or nothing answers there."""
     from cellctl.service.client import CellClient, CellUnreachable, SessionRefused
 
-    endpoint, pw, _ = router
-    wrong = _creds(tmp_path, "operator", pw["operator"] + "x")
+    endpoint, pw, _, ca = router
+    wrong = _creds(tmp_path, "operator", pw["operator"] + "x", ca)
     with pytest.raises(SessionRefused, match=f"answers but refused this session: check the user and password in {wrong}"):
         CellClient("sim-1", [endpoint], zenoh_config_file=wrong)
     down = f"tcp/127.0.0.1:{free_port()}"
     with pytest.raises(CellUnreachable, match="nothing answers there") as e:
-        CellClient("sim-1", [down], zenoh_config_file=_creds(tmp_path, "viewer", pw["viewer"]))
+        CellClient("sim-1", [down], zenoh_config_file=_creds(tmp_path, "viewer", pw["viewer"], ca))
     assert not isinstance(e.value, SessionRefused)
     out = subprocess.run([sys.executable, "-m", "cellctl.cli", "status", "--cell", "sim-1", "--connect", endpoint,
                           "--zenoh-config", wrong], cwd=ROOT, capture_output=True, text=True, timeout=120)
@@ -183,7 +198,7 @@ def test_router_config_errors_are_clear(tmp_path):
     # the shipped config names /etc/scrapcell/zenoh-users.txt: not made yet is one clear line, no traceback
     if not Path("/etc/scrapcell/zenoh-users.txt").exists():
         out = subprocess.run([sys.executable, "-m", "cellctl.service.router", "--config",
-                              str(ROOT / "deploy/zenoh/router.json5"), "--listen", f"tcp/127.0.0.1:{free_port()}"],
+                              str(ROOT / "deploy/zenoh/router.json5"), "--listen", f"tls/127.0.0.1:{free_port()}"],
                              cwd=ROOT, capture_output=True, text=True, timeout=120)
         assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
         assert "/etc/scrapcell/zenoh-users.txt (transport.auth.usrpwd.dictionary_file" in out.stderr, out.stderr
@@ -192,8 +207,10 @@ def test_router_config_errors_are_clear(tmp_path):
 def test_router_exits_on_sigterm(tmp_path):
     subprocess.run(["sh", str(ROOT / "deploy/make-users.sh"), str(tmp_path), "operator"], check=True,
                    capture_output=True, timeout=30)
-    proc = subprocess.Popen([sys.executable, "-m", "cellctl.service.router", "--listen", f"tcp/127.0.0.1:{free_port()}",
-                             "--users", str(tmp_path / "zenoh-users.txt")], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    make_certs(tmp_path / "tls")
+    proc = subprocess.Popen([sys.executable, "-m", "cellctl.service.router", "--listen", f"tls/127.0.0.1:{free_port()}",
+                             "--users", str(tmp_path / "zenoh-users.txt"), "--tls-cert", str(tmp_path / "tls/router.crt"),
+                             "--tls-key", str(tmp_path / "tls/router.key")], cwd=ROOT, stderr=subprocess.PIPE, text=True)
     assert "listening" in proc.stderr.readline()
     proc.send_signal(signal.SIGTERM)
     try:  # exits, and cleanly (a process killed by the signal has status -15)

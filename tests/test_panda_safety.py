@@ -337,25 +337,41 @@ def test_speed_scaling(sim_stack):
     # franky-sim ticks in a Python thread of this process: where other threads (or processes) take
     # the CPU, franky's command can miss a tick and the motion slows in robot time (1.46 once in a
     # full run, 1.00 alone). Simulated time is what is measured, so the ticks are given 3 ms of wall
-    # time each here, and the unscaled run is tried up to three times (load only ever slows it).
+    # time each here, and each run is tried up to three times (load only ever slows it). Under such
+    # load franky's own planner once failed to start a motion (Ruckig -111, "motion aborted by the
+    # robot"); the driver reports that as an abort that recover() clears, which is the contract (the
+    # abort tests below check it), so an aborted attempt is recovered and tried again here.
+    aborts = []
     try:
         _sim_ticks(server, 3.0)
-        for factor, (a, b), tries in ((1.0, (HOME_Q, q1), 3), (0.2, (q1, HOME_Q), 1)):
+        _at_rest(robot)
+        for factor, (a, b) in ((1.0, (HOME_Q, q1)), (0.2, (q1, HOME_Q))):
             arm.relative_dynamics_factor = factor
-            for attempt in range(tries):
-                if attempt:
-                    _home(arm, robot)
+            for attempt in range(3):
+                if np.max(np.abs(arm.joint_positions() - a)) > 1e-3 or arm.needs_recovery:
+                    arm.relative_dynamics_factor = 1.0
+                    if arm.needs_recovery:
+                        arm.recover()
+                    arm.execute(planned(arm, [arm.joint_positions(), a], speed=0.5))
+                    arm.relative_dynamics_factor = factor
+                _at_rest(robot)
                 tr = planned(arm, [a, b], speed=0.5)
-                arm.execute(tr)
+                try:
+                    arm.execute(tr)
+                except TrajectoryError as e:
+                    assert "aborted by the robot" in str(e) and arm.needs_recovery, e
+                    aborts.append(str(e))
+                    continue
                 scale = _time_scale(arm.last_motion_times, arm.last_motion_desired, tr)
                 scales[factor] = min(scales.get(factor, np.inf), scale)
                 paths[factor] = path_distance(arm.last_motion_actual, tr.positions)
                 assert np.max(np.abs(arm.joint_positions() - b)) < 5e-3
-                if scales[factor] < 1.15:
+                if factor != 1.0 or scales[factor] < 1.15:
                     break
     finally:
         arm.relative_dynamics_factor = 1.0
         _sim_ticks(server, 1.0)
+    assert set(scales) == {1.0, 0.2}, (scales, aborts)
     assert scales[1.0] < 1.15, scales  # on our timing
     assert scales[0.2] > 2.0, scales  # slowed down by the factor (0.5 / 0.2 = 2.5 on velocity)
     assert max(paths.values()) < 0.03, paths  # along our path both times

@@ -38,11 +38,14 @@ REPLY_S = 30.0
 NO_REPLY_S = 5.0
 JOB_S = 300.0  # a scan reaches its first view, or ends after a cancel (idle: seconds)
 UP_S = 120.0  # processes come up (a few seconds of imports) or exit (under a second)
+YARD_CA: list[Path] = []  # the yard CA of the module's router (set by the `yard` fixture)
 
 
 def session(endpoint: str, user: str, password: str) -> zenoh.Session:
-    """A client of the router; shared memory off, so big payloads take the network path as a tablet's do."""
+    """A client of the router (TLS, trusting the yard CA); shared memory off, so big payloads take the
+    network path as a tablet's do."""
     c = zenoh.Config()
+    c.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(YARD_CA[0])))
     c.insert_json5("mode", '"client"')
     c.insert_json5("connect/endpoints", json.dumps([endpoint]))
     c.insert_json5("scouting/multicast/enabled", "false")
@@ -61,16 +64,17 @@ def answers(handler) -> list:
 @pytest.fixture(scope="module")
 def yard(router, tmp_path_factory):  # noqa: F811 - the imported fixture
     """The router with one real cell (sim-1) behind it, as deployed; sim-2 is left for impostors."""
-    endpoint, pw, rproc = router
+    endpoint, pw, rproc, ca = router
+    YARD_CA[:] = [ca]
     d = tmp_path_factory.mktemp("yard")
     cfg = write_config(d / "sim-1.yaml", free_port(), d / "data", cell_id="sim-1", zenoh_mode="client", listen=[],
-                       connect=[endpoint], zenoh_config_file=_creds(d, "cell-sim-1", pw["cell-sim-1"]))
+                       connect=[endpoint], zenoh_config_file=_creds(d, "cell-sim-1", pw["cell-sim-1"], ca))
     with open(d / "cell.log", "w") as log:
         cell = subprocess.Popen([sys.executable, "-m", "cellctl.cli", "serve", "--config", str(cfg)], cwd=ROOT,
                                 stdout=log, stderr=subprocess.STDOUT)
     try:
         with CellClient("sim-1", [endpoint], timeout_s=REPLY_S,
-                        zenoh_config_file=_creds(d, "operator", pw["operator"])) as c:
+                        zenoh_config_file=_creds(d, "operator", pw["operator"], ca)) as c:
             deadline = time.monotonic() + UP_S
             while not c.alive(0.5):
                 assert cell.poll() is None and time.monotonic() < deadline, (d / "cell.log").read_text()[-2000:]
@@ -249,7 +253,7 @@ def test_an_operator_submits_and_cancels_through_the_router(yard, tmp_path):
         if ev.step == 0:
             started.set()
 
-    creds = _creds(tmp_path, "operator", pw["operator"])
+    creds = _creds(tmp_path, "operator", pw["operator"], YARD_CA[0])
     with CellClient("sim-1", [endpoint], timeout_s=REPLY_S, zenoh_config_file=creds) as c:
         job = c.submit({"scene": "smooth_cylinder", "max_steps": 12, "noise": False}, on_event=on).job_id
         assert started.wait(JOB_S), events

@@ -4,7 +4,9 @@ to fix it (docs/HARDWARE.md has the long form), exit status 0 when everything is
 Checks: libusb (Open3D's RealSense support loads it), the RealSense udev rules, the connected RealSense
 cameras against the config's ``camera:`` block, which libfranka franky was built with (a Panda and an FR3
 need different builds), a PREEMPT_RT kernel when ``arm.realtime`` is on, and the FCI host: reachable, FCI
-active, the robot's model and kinematics (``drivers.panda.probe``, one libfranka connection)."""
+active, the robot's model and kinematics (``drivers.panda.probe``, one libfranka connection), and the
+yard network: the CA certificate the cell trusts and the router's certificate and name as it presents
+them over TLS."""
 
 from __future__ import annotations
 
@@ -161,9 +163,60 @@ def check_robot(cfg: CellConfig | None, cfg_path: Path) -> Check:
     return Check("robot", False, msg, fix)
 
 
+def _configured_ca(cfg: CellConfig, cfg_dir: Path) -> Path | None:
+    """service.tls_ca_file, else the root_ca_certificate of service.zenoh_config_file (what the cell uses)."""
+    scfg = cfg.service
+    if scfg.tls_ca_file:
+        p = Path(scfg.tls_ca_file)
+        return p if p.is_absolute() else cfg_dir / p
+    if scfg.zenoh_config_file:
+        import zenoh
+
+        from cellctl.tls import configured_ca
+
+        p = Path(scfg.zenoh_config_file)
+        try:
+            ca = configured_ca(zenoh.Config.from_file(str(p if p.is_absolute() else cfg_dir / p)))
+        except Exception:  # noqa: BLE001 - an unreadable file is reported by `cellctl serve`
+            return None
+        return Path(ca) if ca else None
+    return None
+
+
+def check_network(cfg: CellConfig | None, cfg_path: Path) -> Check | None:
+    """The yard router listens on TLS only: the CA this cell trusts is there and in date, and each router
+    endpoint presents a certificate that CA signed, in date, for the name the cell connects to."""
+    from cellctl import tls
+
+    if cfg is None or cfg.service.zenoh_mode != "client":
+        return None
+    eps = cfg.service.connect
+    plain = [ep for ep in eps if not tls.is_tls(ep)]
+    if plain:
+        return Check("yard network", False, f"{', '.join(plain)}: plain TCP, yet the yard router listens on TLS only "
+                     f"(and passwords would cross the network readable)",
+                     f"connect to tls/<router-host>:7447 and set service.tls_ca_file in {cfg_path} (deploy/README.md)")
+    ca = _configured_ca(cfg, cfg_path.parent)
+    if ca is None:
+        return Check("yard network", False, f"{', '.join(eps)} is TLS but no CA certificate is configured",
+                     f"set service.tls_ca_file in {cfg_path} to the yard's ca.crt (deploy/make-certs.sh)")
+    try:
+        warnings = tls.check_ca(ca)
+    except tls.CertificateError as e:
+        return Check("yard network", False, str(e), "give the yard's current ca.crt (deploy/README.md, Certificates)")
+    found = [tls.probe(ep, ca) for ep in eps]
+    bad = [p for p in found if p.kind != "ok"]
+    if bad:
+        fix = "start the router (systemctl start scrapcell-router), check the address and the firewall" \
+            if all(p.kind == "down" for p in bad) else "deploy/README.md, Certificates"
+        return Check("yard network", False, "; ".join(p.message for p in bad), fix)
+    return Check("yard network", True, f"CA {ca}; " + "; ".join(f"{p.endpoint}: {p.message}" for p in found) +
+                 "".join(f"; WARNING: {w}" for w in warnings))
+
+
 def run_checks(cfg: CellConfig | None, cfg_path: Path) -> list[Check]:
     checks = [check_libusb(), check_udev(), check_realsense(cfg), check_franky(cfg), check_realtime(cfg),
-              check_robot(cfg, cfg_path)]
+              check_robot(cfg, cfg_path), check_network(cfg, cfg_path)]
     return [c for c in checks if c is not None]
 
 

@@ -21,6 +21,7 @@ from typing import Callable, TypeVar
 import zenoh
 from pydantic import BaseModel, ValidationError
 
+from cellctl import tls
 from cellctl.service.api import (CHUNK_DEFAULT, TERMINAL_STATES, CancelReply, CancelRequest, CellStatus, ErrorReply,
                                  FileChunk, FileChunkRequest, FileInfo, FileList, JobEvent, JobList, JobRecord, Keys,
                                  ListJobsRequest, ScanDrawingRequest, SubmitReply, dumps)
@@ -56,6 +57,11 @@ class SessionRefused(CellUnreachable):
     """A router (or cell) answers at an endpoint but refused the Zenoh session: wrong user or password."""
 
 
+class CertificateProblem(CellUnreachable):
+    """TLS does not fit: this client's CA file is missing, unreadable or out of date, or the router's
+    certificate is expired, not signed by that CA, or made for another name."""
+
+
 class Subscription:
     def __init__(self, sub):
         self._sub = sub
@@ -73,46 +79,79 @@ class Subscription:
 def _accepts_tcp(endpoint: str, timeout_s: float = 2.0) -> bool:
     """Whether a TCP (or TLS) endpoint accepts a connection: tells a router that refused the session
     from one that is not there."""
-    m = re.match(r"^(?:tcp|tls)/(\[[^\]]+\]|[^:/\[]+):(\d+)", endpoint)
-    if not m:
+    parsed = tls.split_endpoint(endpoint)
+    if not parsed or parsed[0] not in ("tcp", "tls"):
         return False
     try:
-        with socket.create_connection((m.group(1).strip("[]"), int(m.group(2))), timeout=timeout_s):
+        with socket.create_connection(parsed[1:], timeout=timeout_s):
             return True
     except OSError:
         return False
 
 
+def open_config(conf: zenoh.Config, connect: list[str], creds: str) -> zenoh.Session:
+    """Open a session that connects to ``connect``; on failure, say why (``creds``: where this client's
+    user and password are, for the message). Raises CertificateProblem (certificates), SessionRefused
+    (something answers and refused the session: credentials), CellUnreachable (nothing answers)."""
+    ca = tls.configured_ca(conf)
+    secure = [ep for ep in connect if tls.is_tls(ep)]
+    if secure:
+        if not ca:
+            raise CertificateProblem(f"{', '.join(secure)} is TLS: give the yard's CA certificate (--ca FILE, "
+                                     f"tls_ca in a config, or transport.link.tls.root_ca_certificate in the Zenoh "
+                                     f"config)")
+        try:
+            for warning in tls.check_ca(ca):
+                log.warning(warning)
+        except tls.CertificateError as e:
+            raise CertificateProblem(str(e)) from None
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as e:
+        why = zenoh_error(e)
+    found = [tls.probe(ep, ca) if tls.is_tls(ep) else
+             tls.Probe(ep, "plain" if _accepts_tcp(ep) else "down") for ep in connect]
+    bad = [p.message for p in found if p.kind == "certificate"]
+    if bad:
+        raise CertificateProblem("; ".join(bad) + f" ({why})")
+    plain_to_tls = [p.endpoint for p in found if p.kind == "plain" and tls.speaks_tls(p.endpoint)]
+    if plain_to_tls:
+        raise CertificateProblem(f"{', '.join(plain_to_tls)} speaks TLS: connect with tls/ instead of tcp/ and the "
+                                 f"yard's CA certificate ({why})")
+    other = [p.message for p in found if p.kind == "not-tls"]
+    if other:
+        raise CellUnreachable("; ".join(other) + f" ({why})")
+    listening = [p.endpoint for p in found if p.kind in ("ok", "plain")]
+    if listening:
+        raise SessionRefused(f"{', '.join(listening)} answers but refused this session: check {creds} ({why})")
+    raise CellUnreachable(f"cannot reach the cell network at {', '.join(connect) or '(scouting)'}: "
+                          f"nothing answers there ({why})")
+
+
 def open_session(connect: list[str] | tuple[str, ...] = (DEFAULT_ENDPOINT,), *, mode: str = "client",
-                 zenoh_config_file: str | None = None) -> zenoh.Session:
-    """A Zenoh session to the cell network (a cell's endpoint or the yard router). Raises SessionRefused
-    when something answers there and refuses the session (credentials), CellUnreachable when nothing does."""
+                 zenoh_config_file: str | None = None, tls_ca: str | Path | None = None) -> zenoh.Session:
+    """A Zenoh session to the cell network (a cell's endpoint or the yard router); ``tls_ca``: the
+    yard's CA certificate, for tls/ endpoints. Raises what open_config raises."""
     connect = list(connect)
     try:
         conf = zenoh.Config.from_file(zenoh_config_file) if zenoh_config_file else zenoh.Config()
     except zenoh.ZError as e:
         raise ValueError(f"Zenoh config {zenoh_config_file}: {zenoh_error(e)}") from None
     conf.insert_json5("mode", json.dumps(mode))
+    if tls_ca:
+        conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(tls_ca)))
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(connect))
         conf.insert_json5("scouting/multicast/enabled", "false")
-    try:
-        return zenoh.open(conf)
-    except zenoh.ZError as e:
-        listening = [ep for ep in connect if _accepts_tcp(ep)]
-        if listening:
-            creds = f"the user and password in {zenoh_config_file}" if zenoh_config_file else \
-                "whether it needs a user and password (--zenoh-config, see deploy/zenoh/operator.json5)"
-            raise SessionRefused(f"{', '.join(listening)} answers but refused this session: check {creds} "
-                                 f"({zenoh_error(e)})") from None
-        raise CellUnreachable(f"cannot reach the cell network at {', '.join(connect) or '(scouting)'}: "
-                              f"nothing answers there ({zenoh_error(e)})") from None
+    creds = f"the user and password in {zenoh_config_file}" if zenoh_config_file else \
+        "whether it needs a user and password (--zenoh-config, see deploy/zenoh/operator.json5)"
+    return open_config(conf, connect, creds)
 
 
 class CellClient:
     def __init__(self, cell_id: str, connect: list[str] | tuple[str, ...] = (DEFAULT_ENDPOINT,), *,
                  timeout_s: float = 5.0, mode: str = "client", zenoh_config_file: str | None = None,
-                 session: zenoh.Session | None = None):
+                 session: zenoh.Session | None = None, tls_ca: str | Path | None = None):
         """``session``: use this open Zenoh session (one app serving many cells, e.g. the tablet) instead
         of opening one; it stays open when this client closes."""
         self.keys = Keys(cell_id)
@@ -122,7 +161,7 @@ class CellClient:
         if session is not None:
             self.session = session
             return
-        self.session = open_session(self.connect, mode=mode, zenoh_config_file=zenoh_config_file)
+        self.session = open_session(self.connect, mode=mode, zenoh_config_file=zenoh_config_file, tls_ca=tls_ca)
 
     def __enter__(self) -> CellClient:
         return self

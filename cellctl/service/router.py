@@ -1,6 +1,7 @@
 """The yard's Zenoh router as a Python process: no zenohd package installs here, and a session opened
 in router mode is a real router (cells and tablets connect to it as clients; it routes queries,
-replies and events, and enforces authentication and access control from its config)."""
+replies and events, and enforces authentication and access control from its config). It listens on
+TLS only: over plain TCP every password, job and cutting path would cross the yard network readable."""
 
 from __future__ import annotations
 
@@ -13,10 +14,13 @@ from pathlib import Path
 
 import zenoh
 
+from cellctl import tls
 
-def router_config(path: str | Path, listen: list[str] | None = None, users_file: str | None = None) -> "zenoh.Config":
-    """The router's config from a JSON5 file, with the listen endpoints or credential file replaced
-    (a test or a second router on one host)."""
+
+def router_config(path: str | Path, listen: list[str] | None = None, users_file: str | None = None,
+                  tls_cert: str | None = None, tls_key: str | None = None) -> "zenoh.Config":
+    """The router's config from a JSON5 file, with the listen endpoints, credential file or TLS
+    certificate and key replaced (a test or a second router on one host)."""
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"router config {p} does not exist")
@@ -31,16 +35,41 @@ def router_config(path: str | Path, listen: list[str] | None = None, users_file:
         if not Path(users_file).is_file():
             raise ValueError(f"credential file {users_file} does not exist (make it with deploy/make-users.sh)")
         cfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users_file)))
+    if tls_cert:
+        cfg.insert_json5("transport/link/tls/listen_certificate", json.dumps(str(tls_cert)))
+    if tls_key:
+        cfg.insert_json5("transport/link/tls/listen_private_key", json.dumps(str(tls_key)))
+    plain = [ep for ep in _get(cfg, "listen/endpoints") or [] if not tls.is_tls(ep)]
+    if plain:
+        raise ValueError(f"the yard router listens on TLS only, not on {', '.join(plain)}: use tls/HOST:PORT "
+                         f"(over tcp/ passwords and jobs cross the network in the clear)")
     return cfg
+
+
+def _get(cfg: "zenoh.Config", key: str):
+    try:
+        return json.loads(cfg.get_json(key))
+    except Exception:  # noqa: BLE001 - no such setting
+        return None
+
+
+def check_certificates(cfg: "zenoh.Config", path: str | Path) -> list[str]:
+    """ValueError unless the router's certificate and key are there, in date, a pair, and private
+    (Zenoh would fail on the first client's handshake, or serve an expired certificate); warnings."""
+    cert, key = _get(cfg, "transport/link/tls/listen_certificate"), _get(cfg, "transport/link/tls/listen_private_key")
+    if not (cert and key):
+        raise ValueError(f"{path} sets no transport.link.tls.listen_certificate / listen_private_key: make them "
+                         f"with deploy/make-certs.sh, or pass --tls-cert and --tls-key")
+    try:
+        return tls.check_server_pair(cert, key)
+    except tls.CertificateError as e:
+        raise ValueError(str(e)) from None
 
 
 def check_credentials(cfg: "zenoh.Config", path: str | Path) -> None:
     """ValueError when the router would start without the credential file its config names (Zenoh
     would fail with a traceback-sized error)."""
-    try:
-        configured = json.loads(cfg.get_json("transport/auth/usrpwd/dictionary_file"))
-    except Exception:  # noqa: BLE001 - no such setting: a router without passwords
-        configured = None
+    configured = _get(cfg, "transport/auth/usrpwd/dictionary_file")  # None: a router without passwords
     if configured and not Path(configured).is_file():
         raise ValueError(f"credential file {configured} (transport.auth.usrpwd.dictionary_file in {path}) does not "
                          f"exist: make it with deploy/make-users.sh DIR USER..., or pass --users FILE")
@@ -55,7 +84,8 @@ def run_router(cfg: "zenoh.Config", stop: threading.Event | None = None) -> None
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 signal.signal(sig, lambda *_: stop.set())
-        print(f"zenoh router {session.zid()} listening", file=sys.stderr, flush=True)
+        print(f"zenoh router {session.zid()} listening on {', '.join(_get(cfg, 'listen/endpoints') or [])}",
+              file=sys.stderr, flush=True)
         while not stop.wait(0.2):
             pass
     finally:
@@ -70,10 +100,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
                     help="listen endpoint, e.g. tcp/127.0.0.1:7447 (repeatable; default: the config's)")
     ap.add_argument("--users", default=None, help="user:password file (default: the config's dictionary_file)")
+    ap.add_argument("--tls-cert", default=None, help="the router's certificate (default: the config's "
+                    "transport.link.tls.listen_certificate; deploy/make-certs.sh makes it)")
+    ap.add_argument("--tls-key", default=None, help="the router's private key (default: the config's listen_private_key)")
     args = ap.parse_args(argv)
     try:
-        cfg = router_config(args.config, args.listen, args.users)
+        cfg = router_config(args.config, args.listen, args.users, args.tls_cert, args.tls_key)
         check_credentials(cfg, args.config)
+        for warning in check_certificates(cfg, args.config):
+            print(f"cellctl router: warning: {warning}", file=sys.stderr)
     except ValueError as e:
         print(f"cellctl router: {e}", file=sys.stderr)
         return 2

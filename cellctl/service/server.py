@@ -31,7 +31,7 @@ from cellctl.service import logs
 from cellctl.service.api import (MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, TERMINAL_STATES, ApiError, Artifacts,
                                  CancelReply, CancelRequest, CellStatus, FileChunkRequest, JobList, Keys,
                                  ListJobsRequest, ResultSummary, ScanDrawingRequest, SubmitReply, dumps, parse_payload)
-from cellctl.service.client import zenoh_error
+from cellctl.service.client import CellUnreachable, open_config, zenoh_error
 from cellctl.service.events import JobEvents
 from cellctl.service.files import JobFiles
 from cellctl.service.readiness import READINESS_PERIOD_S, DeviceWatch
@@ -68,6 +68,9 @@ def zenoh_config(scfg: ServiceConfig, cfg_dir: Path, *, listen: list[str] | None
     else:
         conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(scfg.zenoh_mode))
+    if scfg.tls_ca_file:
+        ca = Path(scfg.tls_ca_file)
+        conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(ca if ca.is_absolute() else cfg_dir / ca)))
     if scfg.zenoh_mode == "peer" and listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:
@@ -154,8 +157,13 @@ class CellService:
         except BaseException:
             self.close()
             raise
-        self.session = zenoh.open(zenoh_config(self.scfg, self.cfg_path.parent, listen=self.listen,
-                                               connect=self.connect))
+        conf = zenoh_config(self.scfg, self.cfg_path.parent, listen=self.listen, connect=self.connect)
+        if self.scfg.zenoh_mode == "client":  # a refused session says why: certificates, password, or no router
+            creds = f"the user and password in {self.scfg.zenoh_config_file}" if self.scfg.zenoh_config_file else \
+                "service.zenoh_config_file (the cell's router credentials, deploy/zenoh/cell.json5)"
+            self.session = open_config(conf, list(self.connect), creds)
+        else:
+            self.session = zenoh.open(conf)
         try:
             s, k = self.session, self.keys
             self._declared.append(s.declare_queryable(k.status, self._on_status_query))
@@ -575,6 +583,9 @@ def serve(cfg: CellConfig, cfg_path: Path, data_dir: str | None = None, *, liste
             svc.start()
         except ServiceError as e:
             print(f"cellctl serve: {e}", file=sys.stderr)
+            return 1
+        except CellUnreachable as e:  # client of a router: certificates, password or no router, said apart
+            print(f"cellctl serve: cannot join the yard network: {e}", file=sys.stderr)
             return 1
         except zenoh.ZError as e:
             eps = ", ".join(svc.listen if cfg.service.zenoh_mode == "peer" else svc.connect)

@@ -24,6 +24,8 @@ class TabletConfig(BaseModel):
                                description="a cell's endpoint or the yard router's")
     zenoh_config: Path | None = Field(None, description="a Zenoh JSON5 file with this app's router credentials "
                                                         "(deploy/zenoh/operator.json5 or viewer.json5)")
+    tls_ca: Path | None = Field(None, description="the yard's CA certificate (deploy/make-certs.sh), for a tls/ "
+                                                  "endpoint: the yard router listens on TLS only")
     accounts_file: Path = Field(Path("runs/tablet/accounts.yaml"), description="page logins, made with "
                                                                               "`cellctl tablet --add-user`")
     state_dir: Path = Field(Path("runs/tablet"), description="the session secret and the fetched job files")
@@ -42,7 +44,7 @@ class TabletConfig(BaseModel):
                 raise ValueError(f"{ep!r} is not a Zenoh endpoint like tcp/192.168.1.10:7447")
         return v
 
-    @field_validator("zenoh_config")
+    @field_validator("zenoh_config", "tls_ca")
     @classmethod
     def _exists(cls, v: Path | None) -> Path | None:
         if v is not None and not v.is_file():

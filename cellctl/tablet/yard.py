@@ -112,7 +112,7 @@ class Yard:
         try:
             self._session = open_session(self.cfg.connect, mode=self.cfg.zenoh_mode,
                                          zenoh_config_file=str(self.cfg.zenoh_config) if self.cfg.zenoh_config
-                                         else None)
+                                         else None, tls_ca=self.cfg.tls_ca)
         except (CellUnreachable, ValueError) as e:
             self._problem = str(e)
             return False
