@@ -447,6 +447,8 @@ def build_parser() -> argparse.ArgumentParser:
     tb.add_argument("--add-user", metavar="NAME", default=None,
                     help="add (or replace) a page login instead of serving; the password is asked for, or read "
                          "from stdin")
+    tb.add_argument("--remove-user", metavar="NAME", default=None,
+                    help="take a page login away (a lost tablet): the running app logs it out within a second")
     tb.add_argument("--role", choices=("operator", "viewer"), default="operator",
                     help="with --add-user: an operator starts and cancels jobs, a viewer only watches")
     tb.set_defaults(func=_tablet)
@@ -553,6 +555,12 @@ def _tablet(args: argparse.Namespace) -> int:
     from cellctl.tablet.config import load_config
 
     cfg = load_config(args.config)
+    if args.remove_user:
+        from cellctl.tablet.accounts import remove_user
+
+        remove_user(cfg.accounts_file, args.remove_user)
+        print(f"{args.remove_user} removed from {cfg.accounts_file}; its open pages log out within a second")
+        return 0
     if args.add_user:
         import getpass
 
@@ -565,7 +573,7 @@ def _tablet(args: argparse.Namespace) -> int:
         else:  # scripts pipe it in, so it shows in no process list
             password = sys.stdin.readline().rstrip("\n")
         acct = add_user(cfg.accounts_file, args.add_user, args.role, password)
-        print(f"{acct.user} ({acct.role}) written to {cfg.accounts_file}; restart the tablet app to use it")
+        print(f"{acct.user} ({acct.role}) written to {cfg.accounts_file}; a running tablet app reads it at once")
         return 0
     from cellctl.service.logs import setup
     from cellctl.tablet.app import serve

@@ -18,7 +18,7 @@ import trimesh
 from cellctl.service.api import JobRecord, ScanDrawingRequest, Transition
 from cellctl.service.loopback import ROOT
 from cellctl.tablet import geometry, words
-from cellctl.tablet.accounts import Accounts, add_user, load_accounts
+from cellctl.tablet.accounts import AccountBook, Accounts, add_user, load_accounts
 from cellctl.tablet.config import load_config
 
 
@@ -69,6 +69,29 @@ def test_the_cli_adds_a_login_from_stdin_and_refuses_to_serve_without_accounts(t
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert load_accounts(tmp_path / "acc.yaml").check("ana", "cut-steel-42").role == "viewer"
+
+
+def test_a_login_removed_or_changed_ends_in_the_running_app_at_once(tmp_path):
+    """A lost tablet: `cellctl tablet --remove-user` takes its login away, and the running app's AccountBook
+    sees that at the next page or command (the pages log such a session out), without a restart."""
+    path = tmp_path / "acc.yaml"
+    add_user(path, "ana", "operator", "cut-steel-42")
+    add_user(path, "tab7", "operator", "lost-tablet-7")
+    book = AccountBook(path)
+    assert book.lookup("tab7").role == "operator" and book.check("tab7", "lost-tablet-7")
+    cfg = tmp_path / "tablet.yaml"
+    cfg.write_text(f"accounts_file: {path}\nstate_dir: {tmp_path / 'state'}\n")
+    run = [sys.executable, "-m", "cellctl.cli", "tablet", "--config", str(cfg)]
+    r = subprocess.run(run + ["--remove-user", "tab7"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "removed" in r.stdout, r.stderr
+    assert book.lookup("tab7") is None and book.check("tab7", "lost-tablet-7") is None
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    r = subprocess.run(run + ["--remove-user", "tab7"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "has no login 'tab7'" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    add_user(path, "ana", "viewer", "cut-steel-42")  # demoted: the role the pages see changes too
+    assert book.lookup("ana").role == "viewer"
+    path.unlink()  # gone: nobody, rather than the logins it last held
+    assert book.lookup("ana") is None
 
 
 def test_thinning_keeps_an_even_spread_under_the_limit():

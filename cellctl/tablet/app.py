@@ -1,5 +1,5 @@
 """`cellctl tablet`: the web app's process. Its session secret and NiceGUI's per-browser storage live in
-the config's state_dir; accounts are read once at start (add or change one, then restart)."""
+the config's state_dir; the accounts file is read again whenever it changes (AccountBook)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import os
 import secrets
 from pathlib import Path
 
-from cellctl.tablet.accounts import load_accounts
+from cellctl.tablet.accounts import AccountBook
 from cellctl.tablet.config import TabletConfig
 
 log = logging.getLogger("cellctl.tablet")
@@ -26,7 +26,7 @@ def session_secret(state_dir: Path) -> str:
 
 
 def serve(cfg: TabletConfig) -> None:
-    accounts = load_accounts(cfg.accounts_file)  # before anything starts: no accounts, no app
+    accounts = AccountBook(cfg.accounts_file)  # before anything starts: no accounts, no app
     secret = session_secret(cfg.state_dir)
     os.environ["NICEGUI_STORAGE_PATH"] = str(Path(cfg.state_dir).resolve() / "storage")  # read at import
     from nicegui import app, ui

@@ -15,7 +15,7 @@ from nicegui import app, run, ui
 from cellctl.service.api import PLANNER_NAMES, TERMINAL_STATES, JobRecord, ScanDrawingRequest
 from cellctl.service.client import CellError, CellUnreachable, NoReply
 from cellctl.tablet import geometry, words
-from cellctl.tablet.accounts import Accounts
+from cellctl.tablet.accounts import AccountBook
 from cellctl.tablet.config import TabletConfig
 from cellctl.tablet.yard import CellView, Yard
 from planners.registry import DEFAULT_PLANNER
@@ -29,16 +29,6 @@ body { font-size: 19px; color: #111; background: #fff; }
 NET_ERRORS = (CellError, NoReply, CellUnreachable, TimeoutError)
 
 
-def _who() -> tuple[str, str] | None:
-    u = app.storage.user
-    return (u["user"], u["role"]) if u.get("user") and u.get("role") else None
-
-
-def _may_command() -> bool:
-    who = _who()
-    return who is not None and who[1] == "operator"
-
-
 def _say(e: Exception) -> str:
     if isinstance(e, NoReply):
         return "The cell did not answer: it is down, or this account may not do that."
@@ -47,7 +37,23 @@ def _say(e: Exception) -> str:
     return str(e)
 
 
-def register(cfg: TabletConfig, yard: Yard, accounts: Accounts) -> None:
+def register(cfg: TabletConfig, yard: Yard, accounts: AccountBook) -> None:
+    def _who() -> tuple[str, str] | None:
+        """The logged-in user and role, if that login still exists with that role (it may have been removed:
+        a lost tablet); a login that ended is logged out here."""
+        u = app.storage.user
+        if not (u.get("user") and u.get("role")):
+            return None
+        acct = accounts.lookup(u["user"])
+        if acct is None or acct.role != u["role"]:
+            u.clear()
+            return None
+        return acct.user, acct.role
+
+    def _may_command() -> bool:
+        who = _who()
+        return who is not None and who[1] == "operator"
+
     def frame(title: str) -> RedirectResponse | None:
         """Header and the network banner; a redirect to /login (answered by the server, before any page is
         built) when nobody is logged in."""
@@ -67,6 +73,9 @@ def register(cfg: TabletConfig, yard: Yard, accounts: Accounts) -> None:
             .props("data-testid=network")
 
         def show_network():
+            if _who() is None:  # the login was removed or changed while the page was open
+                ui.navigate.to("/login")
+                return
             banner.text = yard.problem or ""
             banner.set_visibility(bool(yard.problem))
 
