@@ -29,8 +29,10 @@ browser:
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
 	fi
 
+# Two processes (pytest-xdist), each taking whole files: a file's tests run in order in one process and its
+# module fixtures are made once, as in a plain `pytest -q`. Every test is written to pass on a loaded machine.
 test: $(STAMP) browser
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 # Every README picture, made by the code itself from a fresh run: a t_piece scan seen by the Rerun
 # viewer (headless: Xvfb and Mesa's Vulkan on the CPU), and the tablet's pages from its browser test.

@@ -395,6 +395,8 @@ class ScanJob:
             res.motion_planning_s += rec.motion_planning_s
             res.motion_s += rec.motion_s
             res.motion_contacts += len(rec.contacts)
+            if self.recorder is not None:
+                self.recorder.flush()  # what a step's event reports is on disk before the event goes out
             if self.progress:
                 self.progress(rec)
             if plan.stop:

@@ -7,12 +7,14 @@ and what lies on its support plane (table, floor) is dimmed, so the picture is t
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+log = logging.getLogger("cellctl.scan.recording")
 _PAINT = np.array([230, 30, 30], dtype=np.uint8)
 
 
@@ -24,8 +26,8 @@ JPEG_QUALITY = 90
 RECORD_VOXEL_M = 0.004
 ROI_MARGIN_M = 0.1  # context kept round the piece's box
 SUPPORT_BAND_M = 0.01  # points this close above the piece's lowest point lie on what it stands on
-PAINT_OVERLAY = (0, 230, 255, 210)
-LABEL_SPACING_M = 0.04  # gap labels nearer than this to one already shown are left out (they would overlap)  # cyan: stands out on red paint and grey steel
+PAINT_OVERLAY = (0, 230, 255, 210)  # cyan: stands out on red paint and grey steel
+LABEL_SPACING_M = 0.04  # gap labels nearer than this to one already shown are left out (they would overlap)
 
 
 def depth_mm(depth: np.ndarray) -> np.ndarray:
@@ -234,6 +236,15 @@ class ScanRecorder:
             rec.log(f"world/cut/gap{j}", rr.LineStrips3D([line], colors=[255, 0, 200], radii=0.007,
                                                          labels=label(np.asarray(line[len(line) // 2]),
                                                                       f"uncut {1000 * g.length_m:.0f} mm: {g.reason}")))
+
+    def flush(self) -> None:
+        """Until what was logged is in the file: a step is reported only after this, so a worker that
+        dies after the report has lost none of the step's recording (Rerun's file sink writes behind)."""
+        if self.rec is not None:
+            try:
+                self.rec.flush(timeout_sec=10.0)  # a file: milliseconds; a live viewer that stalls: not forever
+            except Exception as e:  # noqa: BLE001 - the scan goes on; the recording is the record, not the job
+                log.warning("recording: flush did not complete: %s", e)
 
     def close(self) -> None:
         """Flush and finish the file, then free the stream: Rerun keeps a dropped stream (and the

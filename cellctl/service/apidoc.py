@@ -167,6 +167,13 @@ command line: `cellctl submit|jobs|status --cell <cell_id> --connect <endpoint>`
 - The cell is either a Zenoh **peer** listening on `service.listen` (default `tcp/127.0.0.1:7447`), or a
   **client** of a Zenoh router at `service.connect`. A tablet opens a client session that connects to the
   cell's endpoint or to the router. With explicit endpoints multicast scouting is off.
+- **The yard router speaks TLS only** (`tls/<router-host>:7447`, deploy/README.md). A client's Zenoh config
+  needs the yard's CA certificate as `transport.link.tls.root_ca_certificate` (the router's certificate
+  and its name are checked against it) and its own `transport.auth.usrpwd.user` / `password`;
+  `deploy/zenoh/operator.json5` is such a config. Zenoh reports every failed open alike ("Unable to
+  connect"); `CellClient` and `cellctl` (`--ca FILE`) tell apart a certificate problem
+  (`CertificateProblem`: expired, not signed by that CA, not made for that name, or a `tcp/` endpoint on
+  a TLS port), a refused login (`SessionRefused`) and a router that is down (`CellUnreachable`).
 - `{k}/alive` is a liveliness token: present while the service is up and ready for jobs.
 - **Access control.** When the router enforces Zenoh access control, a denied query is not answered at
   all (no error reply): the querier sees **no reply within its timeout** (in practice often at once).
