@@ -158,6 +158,7 @@ class Probe:
     endpoint: str
     kind: str
     message: str = ""
+    warning: str = ""  # "ok", but the router's certificate expires within WARN_BEFORE
 
 
 _VERIFY = {
@@ -186,8 +187,12 @@ def probe(endpoint: str, ca_file: str | Path, timeout_s: float = 3.0) -> Probe:
     try:
         with ctx.wrap_socket(sock, server_hostname=host) as tls:
             cert = tls.getpeercert()
-            return Probe(endpoint, "ok", f"the router's certificate is trusted and valid for {host} "
-                                         f"(expires {cert.get('notAfter', '?')})")
+        ends = datetime.fromtimestamp(ssl.cert_time_to_seconds(cert["notAfter"]), timezone.utc)
+        left = ends - datetime.now(timezone.utc)
+        warning = f"the router's certificate at {endpoint} expires in {left.days} days ({ends:%Y-%m-%d}): renew it " \
+                  f"(deploy/README.md, Certificates)" if left < WARN_BEFORE else ""
+        return Probe(endpoint, "ok", f"the router's certificate is trusted and valid for {host} (expires "
+                                     f"{ends:%Y-%m-%d})", warning)
     except ssl.SSLCertVerificationError as e:
         why = _VERIFY.get(e.verify_code) or (
             f"the router's certificate is not signed by the CA in {ca_file}" if e.verify_code in (2, 18, 19, 20, 21)

@@ -203,9 +203,17 @@ def test_certificate_problems_router_down_and_wrong_password_are_told_apart(tmp_
         with pytest.raises(CertificateProblem, match="not valid for this name 'localhost'"):
             open_session([f"tls/localhost:{p2}"], tls_ca=ca)
         open_session([f"tls/127.0.0.1:{p2}"], tls_ca=ca).close()  # the name it was made for
+        assert tls.probe(f"tls/127.0.0.1:{p2}", ca).warning == ""
     finally:
         r1.close()
         r2.close()
+    soon = issue(yard_ca, tmp_path / "soon", ["127.0.0.1"], days=(-300, 10))  # still good, not for long
+    r3 = raw_router(*soon, p3 := free_port())
+    try:
+        found = tls.probe(f"tls/127.0.0.1:{p3}", ca)
+        assert found.kind == "ok" and "expires in 9 days" in found.warning, found
+    finally:
+        r3.close()
     with pytest.raises(CellUnreachable, match="nothing answers there") as down:
         open_session([f"tls/127.0.0.1:{free_port()}"], tls_ca=ca)
     assert not isinstance(down.value, (CertificateProblem, SessionRefused))

@@ -210,6 +210,7 @@ def check_network(cfg: CellConfig | None, cfg_path: Path) -> Check | None:
         fix = "start the router (systemctl start scrapcell-router), check the address and the firewall" \
             if all(p.kind == "down" for p in bad) else "deploy/README.md, Certificates"
         return Check("yard network", False, "; ".join(p.message for p in bad), fix)
+    warnings += [p.warning for p in found if p.warning]
     return Check("yard network", True, f"CA {ca}; " + "; ".join(f"{p.endpoint}: {p.message}" for p in found) +
                  "".join(f"; WARNING: {w}" for w in warnings))
 
