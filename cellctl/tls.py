@@ -112,31 +112,33 @@ def _key_mode(path: Path) -> list[str]:
     return [f"private key {path} is readable by its group (mode {mode:o}); 600 is safer"] if mode & 0o070 else []
 
 
-def check_server_pair(cert_path: str | Path, key_path: str | Path, now: datetime | None = None) -> list[str]:
-    """The router's own certificate and key: in date, a server certificate, the key its certificate
-    names, and a key no other user can read. Raises CertificateError; returns warnings."""
+def check_server_pair(cert_path: str | Path, key_path: str | Path, now: datetime | None = None,
+                      who: str = "router") -> list[str]:
+    """A server's own certificate and key (``who``: the router, the tablet app): in date, a server
+    certificate, the key its certificate names, and a key no other user can read. Raises
+    CertificateError; returns warnings."""
     now = now or datetime.now(timezone.utc)
-    cert = load_certificates(cert_path, "router certificate")[0]
-    warnings = _check_dates(cert, cert_path, "router certificate", now)
-    data = _read(key_path, "router private key")
+    cert = load_certificates(cert_path, f"{who} certificate")[0]
+    warnings = _check_dates(cert, cert_path, f"{who} certificate", now)
+    data = _read(key_path, f"{who} private key")
     try:
         key = serialization.load_pem_private_key(data, password=None)
     except (ValueError, TypeError) as e:
-        raise CertificateError(f"router private key {key_path} is not an unencrypted PEM private key ({e})") from None
+        raise CertificateError(f"{who} private key {key_path} is not an unencrypted PEM private key ({e})") from None
     pub = serialization.PublicFormat.SubjectPublicKeyInfo
     if key.public_key().public_bytes(serialization.Encoding.DER, pub) != \
             cert.public_key().public_bytes(serialization.Encoding.DER, pub):
-        raise CertificateError(f"router private key {key_path} does not belong to the certificate {cert_path}")
+        raise CertificateError(f"{who} private key {key_path} does not belong to the certificate {cert_path}")
     try:
         eku = cert.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value
         if ExtendedKeyUsageOID.SERVER_AUTH not in eku:
-            raise CertificateError(f"router certificate {cert_path} is not a server certificate (extendedKeyUsage "
+            raise CertificateError(f"{who} certificate {cert_path} is not a server certificate (extendedKeyUsage "
                                    f"lacks serverAuth)")
     except x509.ExtensionNotFound:
         pass
     if not names(cert):
-        raise CertificateError(f"router certificate {cert_path} names no host (no subjectAltName): clients "
-                               f"verify the router's name against it")
+        raise CertificateError(f"{who} certificate {cert_path} names no host (no subjectAltName): clients "
+                               f"verify the {who}'s name against it")
     return warnings + _key_mode(Path(key_path))
 
 

@@ -4,6 +4,8 @@
 #   deploy/make-certs.sh DIR ca                      the yard CA: DIR/ca.key (0600), DIR/ca.crt (0644)
 #   deploy/make-certs.sh DIR router NAME [NAME...]   the router's key and certificate, signed by the CA,
 #                                                    valid for every DNS name and IP address given
+#   deploy/make-certs.sh DIR tablet NAME [NAME...]   the same for the tablet app's HTTPS pages (tablet.key,
+#                                                    tablet.crt; tablet_tls_cert/tablet_tls_key in its config)
 #   deploy/make-certs.sh DIR show                    what DIR holds and when each certificate expires
 #
 #   e.g. deploy/make-certs.sh /root/yard-ca ca
@@ -25,7 +27,7 @@
 #   the old CA certificate from the clients' file.
 set -eu
 
-usage() { sed -n '2,9p' "$0" >&2; exit 2; }
+usage() { sed -n '2,11p' "$0" >&2; exit 2; }
 [ $# -ge 2 ] || usage
 dir=$1
 what=$2
@@ -58,7 +60,7 @@ ca)
   chmod 644 "$dir/ca.crt"
   echo "wrote $dir/ca.key (keep it offline) and $dir/ca.crt (give it to every cell and tablet), $(expiry "$dir/ca.crt")"
   ;;
-router)
+router|tablet)
   [ $# -ge 1 ] || usage
   [ -f "$dir/ca.key" ] && [ -f "$dir/ca.crt" ] || { echo "make-certs.sh: no CA in $dir: run '$0 $dir ca' first" >&2; exit 1; }
   san=""
@@ -69,20 +71,20 @@ router)
     esac
     san="${san:+$san,}$entry"
   done
-  for f in router.key router.crt; do
+  for f in "$what.key" "$what.crt"; do
     [ -e "$dir/$f" ] && mv -f "$dir/$f" "$dir/$f.old"
   done
-  openssl genpkey -algorithm EC -pkeyopt ec_paramgen_curve:P-256 -out "$dir/router.key" 2>/dev/null
+  openssl genpkey -algorithm EC -pkeyopt ec_paramgen_curve:P-256 -out "$dir/$what.key" 2>/dev/null
   ext=$(mktemp)
-  trap 'rm -f "$ext" "$dir/router.csr"' EXIT
+  trap 'rm -f "$ext" "$dir/$what.csr"' EXIT
   printf '%s\n' "basicConstraints=critical,CA:FALSE" "keyUsage=critical,digitalSignature" \
     "extendedKeyUsage=serverAuth" "subjectAltName=$san" "authorityKeyIdentifier=keyid" > "$ext"
-  openssl req -new -key "$dir/router.key" -subj "/O=scrapcell yard/CN=$1" -out "$dir/router.csr"
-  openssl x509 -req -in "$dir/router.csr" -CA "$dir/ca.crt" -CAkey "$dir/ca.key" -CAcreateserial \
-    -days "$DAYS" -sha256 -extfile "$ext" -out "$dir/router.crt" 2>/dev/null
-  chmod 600 "$dir/router.key"
-  chmod 644 "$dir/router.crt"
-  echo "wrote $dir/router.key and $dir/router.crt for $san, $(expiry "$dir/router.crt")"
+  openssl req -new -key "$dir/$what.key" -subj "/O=scrapcell yard/CN=$1" -out "$dir/$what.csr"
+  openssl x509 -req -in "$dir/$what.csr" -CA "$dir/ca.crt" -CAkey "$dir/ca.key" -CAcreateserial \
+    -days "$DAYS" -sha256 -extfile "$ext" -out "$dir/$what.crt" 2>/dev/null
+  chmod 600 "$dir/$what.key"
+  chmod 644 "$dir/$what.crt"
+  echo "wrote $dir/$what.key and $dir/$what.crt for $san, $(expiry "$dir/$what.crt")"
   ;;
 show)
   for f in "$dir"/*.crt; do

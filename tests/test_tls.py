@@ -331,3 +331,33 @@ def test_the_tablet_app_joins_over_tls_with_its_ca_and_says_why_not_without(tls_
             assert yard.problem is None if expect is None else expect in yard.problem, yard.problem
         finally:
             yard.stop()
+
+
+def test_the_tablet_pages_are_served_over_https_with_a_certificate_from_the_yard_ca(tmp_path, yard_ca):
+    """`make-certs.sh DIR tablet NAME`: the app serves its pages over HTTPS only, with a session cookie marked
+    Secure (a page login never crosses the yard in clear); a key every user can read stops it at start."""
+    import urllib.request
+
+    from cellctl.tablet.loopback import TabletProcess
+
+    _sh(str(yard_ca), "tablet", "localhost", "127.0.0.1")
+    https = dict(https_cert=yard_ca / "tablet.crt", https_key=yard_ca / "tablet.key")
+    users = {"ana": ("operator", "cut-steel-42")}
+    with TabletProcess(tmp_path / "tab", f"tcp/127.0.0.1:{free_port()}", users, https_ca=yard_ca / "ca.crt",
+                       **https) as tab:
+        assert tab.url.startswith("https://")
+        ctx = __import__("ssl").create_default_context(cafile=str(yard_ca / "ca.crt"))
+        with urllib.request.urlopen(f"{tab.url}/login", timeout=REPLY_S, context=ctx) as r:
+            cookies = r.headers.get_all("set-cookie") or []
+            assert r.status == 200 and "Log in" in r.read().decode()
+        assert cookies and all("secure" in c.lower() for c in cookies), cookies
+        with pytest.raises(OSError):  # plain HTTP on the same port gets no page (the connection is closed)
+            urllib.request.urlopen(f"http://127.0.0.1:{tab.port}/login", timeout=REPLY_S).read()
+    os.chmod(yard_ca / "tablet.key", 0o644)
+    try:
+        bad = TabletProcess(tmp_path / "bad", f"tcp/127.0.0.1:{free_port()}", users, https_ca=yard_ca / "ca.crt",
+                            **https)
+        with pytest.raises(RuntimeError, match="readable by every user"):
+            bad.start()
+    finally:
+        os.chmod(yard_ca / "tablet.key", 0o600)

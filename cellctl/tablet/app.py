@@ -27,6 +27,18 @@ def session_secret(state_dir: Path) -> str:
 
 def serve(cfg: TabletConfig) -> None:
     accounts = AccountBook(cfg.accounts_file)  # before anything starts: no accounts, no app
+    https = {}
+    if cfg.https_cert:
+        from cellctl import tls
+
+        try:
+            for warning in tls.check_server_pair(cfg.https_cert, cfg.https_key, who="tablet app"):
+                log.warning(warning)
+        except tls.CertificateError as e:
+            raise ValueError(str(e)) from None
+        # the session cookie only over HTTPS, so a page login never leaves the tablet in clear
+        https = {"ssl_certfile": str(cfg.https_cert), "ssl_keyfile": str(cfg.https_key),
+                 "session_middleware_kwargs": {"https_only": True}}
     secret = session_secret(cfg.state_dir)
     os.environ["NICEGUI_STORAGE_PATH"] = str(Path(cfg.state_dir).resolve() / "storage")  # read at import
     from nicegui import app, ui
@@ -38,7 +50,7 @@ def serve(cfg: TabletConfig) -> None:
     app.on_startup(yard.start)
     app.on_shutdown(yard.stop)
     register(cfg, yard, accounts)
-    log.info("tablet app on http://%s:%d, cells via %s (%s)", cfg.host, cfg.port, ", ".join(cfg.connect),
-             cfg.zenoh_mode)
+    log.info("tablet app on %s://%s:%d, cells via %s (%s)", "https" if https else "http", cfg.host, cfg.port,
+             ", ".join(cfg.connect), cfg.zenoh_mode)
     ui.run(host=cfg.host, port=cfg.port, title=cfg.title, storage_secret=secret, reload=False, show=False,
-           show_welcome_message=False, favicon="🔥", reconnect_timeout=10.0)
+           show_welcome_message=False, favicon="🔥", reconnect_timeout=10.0, **https)

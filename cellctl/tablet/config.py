@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from configs.loading import load_yaml_model
 
@@ -26,6 +26,10 @@ class TabletConfig(BaseModel):
                                                         "(deploy/zenoh/operator.json5 or viewer.json5)")
     tls_ca: Path | None = Field(None, description="the yard's CA certificate (deploy/make-certs.sh), for a tls/ "
                                                   "endpoint: the yard router listens on TLS only")
+    https_cert: Path | None = Field(None, description="the app's certificate for HTTPS pages (deploy/make-certs.sh DIR "
+                                                      "tablet NAME): page logins and sessions do not cross the yard "
+                                                      "network in clear; the tablets trust the yard's ca.crt")
+    https_key: Path | None = Field(None, description="its private key (mode 600)")
     accounts_file: Path = Field(Path("runs/tablet/accounts.yaml"), description="page logins, made with "
                                                                               "`cellctl tablet --add-user`")
     state_dir: Path = Field(Path("runs/tablet"), description="the session secret and the fetched job files")
@@ -44,7 +48,13 @@ class TabletConfig(BaseModel):
                 raise ValueError(f"{ep!r} is not a Zenoh endpoint like tcp/192.168.1.10:7447")
         return v
 
-    @field_validator("zenoh_config", "tls_ca")
+    @model_validator(mode="after")
+    def _https_pair(self) -> "TabletConfig":
+        if (self.https_cert is None) != (self.https_key is None):
+            raise ValueError("https_cert and https_key go together (deploy/make-certs.sh DIR tablet NAME makes both)")
+        return self
+
+    @field_validator("zenoh_config", "tls_ca", "https_cert", "https_key")
     @classmethod
     def _exists(cls, v: Path | None) -> Path | None:
         if v is not None and not v.is_file():

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import signal
+import ssl
 import subprocess
 import sys
 import time
@@ -23,17 +24,22 @@ from cellctl.tablet.accounts import add_user
 
 
 class TabletProcess:
-    def __init__(self, workdir: Path, endpoint: str, users: dict[str, tuple[str, str]], **cfg):
+    def __init__(self, workdir: Path, endpoint: str, users: dict[str, tuple[str, str]], *,
+                 https_ca: Path | None = None, **cfg):
+        """``cfg``: tablet config fields; with ``https_cert``/``https_key`` the pages are HTTPS, checked
+        against ``https_ca``."""
         self.workdir = Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
+        self.url = f"{'https' if cfg.get('https_cert') else 'http'}://127.0.0.1:{self.port}"
+        self._ssl = ssl.create_default_context(cafile=str(https_ca)) if https_ca else None
         self.config = self.workdir / "tablet.yaml"
         accounts = self.workdir / "accounts.yaml"
         for user, (role, password) in users.items():
             add_user(accounts, user, role, password)
         doc = {"host": "127.0.0.1", "port": self.port, "connect": [endpoint], "accounts_file": str(accounts),
-               "state_dir": str(self.workdir / "state"), **cfg}
+               "state_dir": str(self.workdir / "state"), **{k: str(v) if isinstance(v, Path) else v
+                                                             for k, v in cfg.items()}}
         self.config.write_text(yaml.safe_dump(doc))
         self.log = self.workdir / "tablet.log"
         self.proc: subprocess.Popen | None = None
@@ -49,7 +55,7 @@ class TabletProcess:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"the tablet app exited with {self.proc.returncode}:\n{self.log.read_text()[-3000:]}")
             try:
-                with urllib.request.urlopen(f"{self.url}/login", timeout=2) as r:
+                with urllib.request.urlopen(f"{self.url}/login", timeout=2, context=self._ssl) as r:
                     if r.status == 200:
                         return self
             except OSError:
