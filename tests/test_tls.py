@@ -7,10 +7,12 @@ Tests of: cellctl.tls, cellctl.service.router, cellctl.commissioning.doctor (the
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import os
 import signal
 import socket
+import ssl
 import stat
 import subprocess
 import sys
@@ -47,8 +49,6 @@ def issue(ca_dir: Path, out: Path, names: list[str], *, days: tuple[float, float
     ca = x509.load_pem_x509_certificate((ca_dir / "ca.crt").read_bytes())
     key = ec.generate_private_key(ec.SECP256R1())
     now = datetime.now(timezone.utc)
-    import ipaddress
-
     sans = [x509.IPAddress(ipaddress.ip_address(n)) if n[0].isdigit() else x509.DNSName(n) for n in names]
     cert = (x509.CertificateBuilder().subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, names[0])]))
             .issuer_name(ca.subject).public_key(key.public_key()).serial_number(x509.random_serial_number())
@@ -346,7 +346,7 @@ def test_the_tablet_pages_are_served_over_https_with_a_certificate_from_the_yard
     with TabletProcess(tmp_path / "tab", f"tcp/127.0.0.1:{free_port()}", users, https_ca=yard_ca / "ca.crt",
                        **https) as tab:
         assert tab.url.startswith("https://")
-        ctx = __import__("ssl").create_default_context(cafile=str(yard_ca / "ca.crt"))
+        ctx = ssl.create_default_context(cafile=str(yard_ca / "ca.crt"))
         with urllib.request.urlopen(f"{tab.url}/login", timeout=REPLY_S, context=ctx) as r:
             cookies = r.headers.get_all("set-cookie") or []
             assert r.status == 200 and "Log in" in r.read().decode()
