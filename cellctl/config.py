@@ -93,6 +93,14 @@ class ServiceConfig(BaseModel):
             raise ValueError("zenoh_mode peer needs a `listen` or `connect` endpoint")
         return self
 
+    def zenoh_config_path(self, cfg_dir: Path) -> Path | None:
+        """zenoh_config_file, relative to the cell config's folder ``cfg_dir``."""
+        return cfg_dir / self.zenoh_config_file if self.zenoh_config_file else None
+
+    def tls_ca_path(self, cfg_dir: Path) -> Path | None:
+        """tls_ca_file, relative to the cell config's folder ``cfg_dir``."""
+        return cfg_dir / self.tls_ca_file if self.tls_ca_file else None
+
 
 class FciSimConfig(BaseModel):
     """mode fcisim: where the franky-sim robot (a MuJoCo FR3 behind libfranka's protocol) runs."""

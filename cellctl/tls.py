@@ -209,12 +209,17 @@ def probe(endpoint: str, ca_file: str | Path, timeout_s: float = 3.0) -> Probe:
         sock.close()
 
 
-def configured_ca(conf) -> str | None:
-    """The CA certificate file a Zenoh config (``zenoh.Config``) trusts for tls/ links, if any."""
+def config_value(conf, key: str):
+    """A setting of a Zenoh config (``zenoh.Config``), or None where it is not set."""
     try:
-        return json.loads(conf.get_json("transport/link/tls/root_ca_certificate")) or None
-    except Exception:  # noqa: BLE001 - not set
+        return json.loads(conf.get_json(key))
+    except Exception:  # noqa: BLE001 - no such setting
         return None
+
+
+def configured_ca(conf) -> str | None:
+    """The CA certificate file a Zenoh config trusts for tls/ links, if any."""
+    return config_value(conf, "transport/link/tls/root_ca_certificate") or None
 
 
 def speaks_tls(endpoint: str, timeout_s: float = 3.0) -> bool:

@@ -167,16 +167,14 @@ def _configured_ca(cfg: CellConfig, cfg_dir: Path) -> Path | None:
     """service.tls_ca_file, else the root_ca_certificate of service.zenoh_config_file (what the cell uses)."""
     scfg = cfg.service
     if scfg.tls_ca_file:
-        p = Path(scfg.tls_ca_file)
-        return p if p.is_absolute() else cfg_dir / p
+        return scfg.tls_ca_path(cfg_dir)
     if scfg.zenoh_config_file:
         import zenoh
 
         from cellctl.tls import configured_ca
 
-        p = Path(scfg.zenoh_config_file)
         try:
-            ca = configured_ca(zenoh.Config.from_file(str(p if p.is_absolute() else cfg_dir / p)))
+            ca = configured_ca(zenoh.Config.from_file(str(scfg.zenoh_config_path(cfg_dir))))
         except Exception:  # noqa: BLE001 - an unreadable file is reported by `cellctl serve`
             return None
         return Path(ca) if ca else None

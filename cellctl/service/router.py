@@ -39,24 +39,18 @@ def router_config(path: str | Path, listen: list[str] | None = None, users_file:
         cfg.insert_json5("transport/link/tls/listen_certificate", json.dumps(str(tls_cert)))
     if tls_key:
         cfg.insert_json5("transport/link/tls/listen_private_key", json.dumps(str(tls_key)))
-    plain = [ep for ep in _get(cfg, "listen/endpoints") or [] if not tls.is_tls(ep)]
+    plain = [ep for ep in tls.config_value(cfg, "listen/endpoints") or [] if not tls.is_tls(ep)]
     if plain:
         raise ValueError(f"the yard router listens on TLS only, not on {', '.join(plain)}: use tls/HOST:PORT "
                          f"(over tcp/ passwords and jobs cross the network in the clear)")
     return cfg
 
 
-def _get(cfg: "zenoh.Config", key: str):
-    try:
-        return json.loads(cfg.get_json(key))
-    except Exception:  # noqa: BLE001 - no such setting
-        return None
-
-
 def check_certificates(cfg: "zenoh.Config", path: str | Path) -> list[str]:
     """ValueError unless the router's certificate and key are there, in date, a pair, and private
     (Zenoh would fail on the first client's handshake, or serve an expired certificate); warnings."""
-    cert, key = _get(cfg, "transport/link/tls/listen_certificate"), _get(cfg, "transport/link/tls/listen_private_key")
+    cert = tls.config_value(cfg, "transport/link/tls/listen_certificate")
+    key = tls.config_value(cfg, "transport/link/tls/listen_private_key")
     if not (cert and key):
         raise ValueError(f"{path} sets no transport.link.tls.listen_certificate / listen_private_key: make them "
                          f"with deploy/make-certs.sh, or pass --tls-cert and --tls-key")
@@ -69,7 +63,7 @@ def check_certificates(cfg: "zenoh.Config", path: str | Path) -> list[str]:
 def check_credentials(cfg: "zenoh.Config", path: str | Path) -> None:
     """ValueError when the router would start without the credential file its config names (Zenoh
     would fail with a traceback-sized error)."""
-    configured = _get(cfg, "transport/auth/usrpwd/dictionary_file")  # None: a router without passwords
+    configured = tls.config_value(cfg, "transport/auth/usrpwd/dictionary_file")  # None: a router without passwords
     if configured and not Path(configured).is_file():
         raise ValueError(f"credential file {configured} (transport.auth.usrpwd.dictionary_file in {path}) does not "
                          f"exist: make it with deploy/make-users.sh DIR USER..., or pass --users FILE")
@@ -84,7 +78,7 @@ def run_router(cfg: "zenoh.Config", stop: threading.Event | None = None) -> None
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 signal.signal(sig, lambda *_: stop.set())
-        print(f"zenoh router {session.zid()} listening on {', '.join(_get(cfg, 'listen/endpoints') or [])}",
+        print(f"zenoh router {session.zid()} listening on {', '.join(tls.config_value(cfg, 'listen/endpoints') or [])}",
               file=sys.stderr, flush=True)
         while not stop.wait(0.2):
             pass

@@ -62,15 +62,11 @@ def zenoh_config(scfg: ServiceConfig, cfg_dir: Path, *, listen: list[str] | None
     scouting off: a cell must not wander into another cell's session on the shop network."""
     listen = scfg.listen if listen is None else listen
     connect = scfg.connect if connect is None else connect
-    if scfg.zenoh_config_file:
-        p = Path(scfg.zenoh_config_file)
-        conf = zenoh.Config.from_file(str(p if p.is_absolute() else cfg_dir / p))
-    else:
-        conf = zenoh.Config()
+    zenoh_file, ca = scfg.zenoh_config_path(cfg_dir), scfg.tls_ca_path(cfg_dir)
+    conf = zenoh.Config.from_file(str(zenoh_file)) if zenoh_file else zenoh.Config()
     conf.insert_json5("mode", json.dumps(scfg.zenoh_mode))
-    if scfg.tls_ca_file:
-        ca = Path(scfg.tls_ca_file)
-        conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(ca if ca.is_absolute() else cfg_dir / ca)))
+    if ca:
+        conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(ca)))
     if scfg.zenoh_mode == "peer" and listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:
