@@ -129,6 +129,9 @@ def _tour(page, tab, cell: dict, shots: Path, tmp_path: Path) -> None:
             page.get_by_test_id("start").click()
             expect(page).not_to_have_url(re.compile(first_job))
             expect(page.get_by_test_id("phase")).to_have_text("Scanning the piece", timeout=LIVE_S)
+            button = page.get_by_test_id("cancel").element_handle()
+            page.wait_for_timeout(2500)  # the live figures are redrawn every second; the button is not
+            assert button.evaluate("e => e.isConnected"), "the Cancel button was redrawn: a tap on it can be lost"
             page.get_by_test_id("cancel").click()
             expect(page.get_by_test_id("job-state")).to_have_text("cancelled", timeout=LIVE_S)
 

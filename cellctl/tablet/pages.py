@@ -340,23 +340,29 @@ def register(cfg: TabletConfig, yard: Yard, accounts: AccountBook) -> None:
                 ui.label(f"Running for {words.elapsed(r)}").classes("text-xl").props("data-testid=elapsed")
                 if ev and ev.message:
                     ui.label(ev.message).classes("text-lg text-grey-9")
-                if _may_command() and r.state != "cancelling":
-                    ui.button("Cancel job", icon="stop", on_click=cancel).classes(f"{BIG} q-mt-md") \
-                        .props("color=red-9 data-testid=cancel")
 
         async def cancel():
             if not _may_command():
                 ui.notify("Only an operator can cancel a job.", type="negative")
                 return
             reason = f"tablet: {_who()[0]}"  # the login is read here, in the page's context, not in the worker thread
+            cancel_button.disable()
             try:
                 reply = await run.io_bound(lambda: yard.client(cell_id).cancel(job_id, reason=reason))
                 ui.notify(f"Job {reply.state}.", type="info")
             except NET_ERRORS as e:
                 ui.notify(f"Not cancelled: {_say(e)}", type="negative", timeout=10000)
+            cancel_button.enable()
             await read()
             head.refresh()
             live.refresh()
+            show_cancel()
+
+        def show_cancel() -> None:
+            r = rec[0]
+            if cancel_button is not None:
+                cancel_button.set_visibility(bool(r is not None and r.state not in TERMINAL_STATES
+                                                  and r.state != "cancelling" and _may_command()))
 
         @ui.refreshable
         def result():
@@ -437,11 +443,19 @@ def register(cfg: TabletConfig, yard: Yard, accounts: AccountBook) -> None:
             if figures != shown[1]:
                 shown[1] = figures
                 live.refresh()
+            show_cancel()
 
         await read()
         shown[0] = rec[0].state if rec[0] else None
         head()
         live()
+        # made once, beside the live figures that are redrawn every second: a button redrawn under a
+        # finger loses the tap (the click names an element the server has already replaced)
+        cancel_button = None
+        if _may_command():  # a viewer's page has none
+            cancel_button = ui.button("Cancel job", icon="stop", on_click=cancel).classes(f"{BIG} q-mx-md") \
+                .props("color=red-9 data-testid=cancel")
+        show_cancel()
         result()
         ui.timer(1.0, tick)
         ui.timer(5.0, read)  # an event may be lost: the record is the truth
