@@ -95,8 +95,10 @@ def _tour(page, tab, cell: dict, shots: Path, tmp_path: Path) -> None:
             # start a scan of the T-piece; progress comes from the events
             card.click()
             expect(page.get_by_test_id("planner")).to_contain_text("gnbv")
+            expect(page.get_by_test_id("no-jobs")).to_be_visible()  # a fresh cell says so, not a bare heading
             page.get_by_test_id("scene").click()
             page.get_by_role("option", name="t_piece", exact=True).click()
+            expect(page.get_by_role("listbox")).to_be_hidden()
             page.screenshot(path=shots / "tablet-cell.png")
             page.get_by_test_id("start").click()
             expect(page).to_have_url(re.compile(r"/cell/sim-1/job/\d{8}T\d{6}Z-[0-9a-f]{6}$"))

@@ -33,7 +33,7 @@ def examples() -> dict[str, BaseModel]:
                                               drawing_length_m=0.677,
                                               gaps=[CutGap(branch=0, length_m=0.040, reason="out of reach",
                                                            detail="the torch pose is beyond the arm's reach at "
-                                                                  "every tilt (8 out of reach of 8 poses)",
+                                                                  "every tilt (8 out of reach; 8 poses in all)",
                                                            start=[0.712, 0.221, 0.141], end=[0.690, 0.197, 0.152])],
                                               warnings=[]))
     return {

@@ -244,6 +244,9 @@ def register(cfg: TabletConfig, yard: Yard, accounts: AccountBook) -> None:
             if isinstance(jobs, str):
                 ui.label(jobs).classes("q-px-md text-red-9")
                 return
+            if not jobs.jobs:
+                ui.label("No jobs on this cell yet.").classes("q-px-md text-lg").props("data-testid=no-jobs")
+                return
             with ui.column().classes("q-px-md w-full gap-2"):
                 for j in jobs.jobs:
                     with ui.row().classes("items-center gap-4 w-full border-b q-py-sm cursor-pointer") \
@@ -392,7 +395,7 @@ def register(cfg: TabletConfig, yard: Yard, accounts: AccountBook) -> None:
                         ui.label("Left uncut:").classes("text-xl font-bold q-mt-sm")
                         for g in gaps:
                             ui.label(f"{1000 * g.length_m:.0f} mm: {words.gap_reason(g.reason)}"
-                                     + (f" ({g.detail})" if g.detail else "")).classes("text-lg") \
+                                     + (f": {g.detail}" if g.detail else "")).classes("text-lg") \
                                 .props("data-testid=gap")
                     for w in cut.warnings:
                         ui.label(f"Note: {w}").classes("text-lg text-orange-10").props("data-testid=warning")

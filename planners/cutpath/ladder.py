@@ -468,6 +468,6 @@ def _gaps(N: int, runs: list[tuple[int, int]], reason: list[str]) -> list[Gap]:
             seg = [r or SINGULAR for r in reason[prev + 1:first]] or [SINGULAR]
             why = max(sorted(set(seg)), key=seg.count)
             counts = ", ".join(f"{seg.count(r)} {r}" for r in sorted(set(seg)))
-            gaps.append(Gap(prev, first, why, f"{_WHY[why]} ({counts} of {len(seg)} poses)"))
+            gaps.append(Gap(prev, first, why, f"{_WHY[why]} ({counts}; {len(seg)} pose{'s' * (len(seg) != 1)} in all)"))
         prev = last
     return gaps
