@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from cellctl.bench.oracle import TrueViews, greedy_best
+from cellctl.bench.oracle import TrueViews, beam_best, greedy_best
 from sim.config import D435Config
 
 
@@ -22,6 +22,19 @@ def test_greedy_from_each_good_first_view_finds_the_pair_plain_greedy_misses():
     best = greedy_best(S, start, views=2, firsts=3)
     assert best[0] == (5 / 7, [0])
     assert best[1][0] == 1.0 and sorted(best[1][1]) == [1, 2]
+
+
+def test_the_beam_finds_three_views_that_see_all_where_greedy_from_every_first_view_leaves_two_stragglers():
+    """View 0 sees the most; after it every second view leaves two voxels no third view joins. The
+    beam keeps the pair (1, 3) whose leftovers one view (2) joins."""
+    S = np.zeros((4, 9), dtype=bool)
+    for row, seen in enumerate(([0, 1, 3, 5, 7], [0, 2, 5, 6], [1, 4, 6, 7], [3, 5, 6, 7, 8])):
+        S[row, seen] = True
+    start = np.zeros(9, dtype=bool)
+    assert greedy_best(S, start, views=3, firsts=4)[2][0] == 8 / 9
+    best = beam_best(S, start, views=3)
+    assert best[0] == (5 / 9, [0])
+    assert best[2][0] == 1.0 and sorted(best[2][1]) == [1, 2, 3]
 
 
 def test_a_camera_sees_the_paint_on_top_of_a_plate_from_above_not_from_below():
