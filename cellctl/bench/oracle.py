@@ -64,6 +64,28 @@ def candidate_eyes(centre: np.ndarray, min_z: float, step_deg: float = STEP_DEG)
     return eyes[eyes[:, 2] > min_z]
 
 
+def arm_reach(scene, twin_cfg):
+    """The capability map of the twin's arm (the same for every scene; a twin is opened for its model)."""
+    with Twin(scene, twin_cfg) as twin:
+        m = twin.arm.model
+        kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
+    return reach_map_for(kin)
+
+
+def reachable_candidates(gt: np.ndarray, pcfg: PlannersConfig, reach, step_deg: float = STEP_DEG
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """(eyes, aims): the candidate positions round each aim point of the paint, above the planners'
+    own camera floor, kept where ``reach`` says the arm can look from there at the aim."""
+    eyes, aims = [], []
+    for aim in aim_points(gt):
+        e = candidate_eyes(aim, pcfg.nbv.min_camera_z_m, step_deg)
+        axes = aim - e
+        e = e[reach.reachable(e, axes / np.linalg.norm(axes, axis=1, keepdims=True))]
+        eyes.append(e)
+        aims.append(np.broadcast_to(aim, e.shape))
+    return np.vstack(eyes), np.vstack(aims)
+
+
 class TrueViews:
     """Which ground-truth coverage voxels a camera at an eye, aimed at the paint, sees of the true mesh."""
 
@@ -194,20 +216,10 @@ def measure(cfg: CellConfig, pcfg: PlannersConfig, scenes: list[str], views: int
     voxel = pcfg.coverage_voxel_m
     twin_cfg = cfg.twin.model_copy(update={"camera": cfg.twin.camera.model_copy(update={"noise": False})})
     rows = []
-    with Twin(load_scene(scenes[0]), twin_cfg) as twin:
-        m = twin.arm.model
-        kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
-    reach = reach_map_for(kin)
+    reach = arm_reach(load_scene(scenes[0]), twin_cfg)
     for name in scenes:
         scene = load_scene(name)
-        eyes, aims = [], []
-        for aim in aim_points(scene.gt_points):
-            e = candidate_eyes(aim, pcfg.nbv.min_camera_z_m, step_deg)  # the planners' own floor for the camera
-            axes = aim - e
-            e = e[reach.reachable(e, axes / np.linalg.norm(axes, axis=1, keepdims=True))]
-            eyes.append(e)
-            aims.append(np.broadcast_to(aim, e.shape))
-        eyes, aims = np.vstack(eyes), np.vstack(aims)
+        eyes, aims = reachable_candidates(scene.gt_points, pcfg, reach, step_deg)
         T0 = scene.initial_view_candidates[0]
         if sensor == "cast":
             tv = TrueViews(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points, voxel, twin_cfg.camera)

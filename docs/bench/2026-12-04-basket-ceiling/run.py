@@ -6,8 +6,6 @@ import sys, time, numpy as np
 from cellctl.bench import oracle as ob
 from cellctl.config import load_cell_config
 from planners.config import load_planners_config
-from planners.motion.kinematics import Kinematics
-from planners.motion.reach_map import reach_map_for
 from sim.scenes import load_scene
 from sim.twin import Twin
 
@@ -18,17 +16,7 @@ cfg, p = load_cell_config("configs/cell.sim.yaml")
 pcfg = load_planners_config(p.parent / cfg.planners_config)
 twin_cfg = cfg.twin.model_copy(update={"camera": cfg.twin.camera.model_copy(update={"noise": False})})
 scene = load_scene("basket")
-with Twin(scene, twin_cfg) as twin:
-    m = twin.arm.model
-    kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
-reach = reach_map_for(kin)
-eyes, aims = [], []
-for aim in ob.aim_points(scene.gt_points):
-    e = ob.candidate_eyes(aim, pcfg.nbv.min_camera_z_m, step)
-    axes = aim - e
-    e = e[reach.reachable(e, axes / np.linalg.norm(axes, axis=1, keepdims=True))]
-    eyes.append(e); aims.append(np.broadcast_to(aim, e.shape))
-eyes, aims = np.vstack(eyes), np.vstack(aims)
+eyes, aims = ob.reachable_candidates(scene.gt_points, pcfg, ob.arm_reach(scene, twin_cfg), step)
 poses = ob.rolled_poses(eyes, aims)
 idx = np.arange(len(poses))[k::K]
 t = time.time()
