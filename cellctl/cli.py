@@ -358,10 +358,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "same states, in one process (scoring.json, scoring.md)")
     b.add_argument("--oracle", action="store_true",
                    help="instead of scans: the coverage an all-knowing planner reaches after 1-4 views (the true "
-                        "mesh cast from reachable positions; oracle.json, oracle.md)")
+                        "mesh cast from every pose the arm takes, and from those above the planners' camera floor; oracle.json, "
+                        "oracle.md)")
     b.add_argument("--oracle-sensor", choices=("cast", "twin"), default="cast",
                    help="with --oracle: cast the true mesh (default, minutes) or render each candidate with the twin's "
-                        "own sensor, its depth-discontinuity dropouts included (about 0.3 s per candidate and roll)")
+                        "own sensor, its depth-discontinuity dropouts included (about 0.3 s per pose)")
     b.add_argument("--oracle-step-deg", type=float, default=7.5,
                    help="with --oracle: spacing of the candidate positions on their shells (default: 7.5)")
     b.add_argument("--report", default=None, metavar="BENCH_JSON",

@@ -107,3 +107,51 @@ def test_the_twins_own_frames_lose_thin_rods_silhouettes_that_a_mesh_cast_keeps(
     assert P.shape == (2, 4, 4) and np.allclose(P[0][:3, 2], P[1][:3, 2])
     assert abs(P[0][:3, 0] @ P[1][:3, 0]) < 1e-9 and np.allclose(P[1][:3, :3].T @ P[1][:3, :3], np.eye(3))
     assert np.linalg.det(P[1][:3, :3]) > 0.99
+
+
+def test_the_image_s_roll_decides_what_a_wide_short_frame_holds():
+    """A stripe along x under a camera 0.3 m up: with the image's wide axis along the stripe it is
+    framed whole (69 degrees wide); rolled a quarter turn, the 42-degree side frames about two thirds."""
+    plate = trimesh.creation.box([0.8, 0.2, 0.01])
+    xs = np.arange(-0.18, 0.18 + 1e-9, 0.01)
+    stripe = np.column_stack([xs, np.zeros_like(xs), np.full(xs.size, 0.005)])
+    tv = TrueViews(plate.vertices, plate.faces, stripe, 0.01, D435Config(noise=False))
+    along = np.eye(4)
+    along[:3, :3] = np.diag([1.0, -1.0, -1.0])  # looking down, x along the stripe
+    along[:3, 3] = [0.0, 0.0, 0.3]
+    across = along.copy()
+    across[:3, :3] = along[:3, :3] @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    assert tv.seen_pose(along).all()
+    assert 0.5 < tv.seen_pose(across).mean() < 0.9
+
+
+def test_the_arm_takes_a_view_from_above_and_refuses_one_at_the_table_one_in_the_piece_one_out_of_reach():
+    """The twin's Panda with its camera and torch, a block on the table in front of it: a camera 0.4 m
+    above the block looking down is taken, and the pose the arm takes there is the one asked for (up
+    to the roll); 4 cm above the table looking level, the wrist would be in the table; 1.5 m out,
+    beyond reach. A camera 20 cm up at the block's centre is taken with the block elsewhere, and
+    refused inside it."""
+    from pathlib import Path
+
+    from cellctl.bench.oracle import ArmTakes, twin_arm
+    from cellctl.config import load_cell_config
+    from planners.config import load_planners_config
+    from planners.views import look_at_rotations, poses_from
+    from sim.scenes import load_scene
+
+    cfg, path = load_cell_config(Path(__file__).parents[1] / "configs" / "cell.sim.yaml")
+    pcfg = load_planners_config(path.parent / cfg.planners_config)
+    model, q0 = twin_arm(load_scene("t_piece"), cfg.twin)
+    eyes = np.array([[0.45, 0.0, 0.7], [0.5, 0.35, 0.04], [1.5, 0.0, 0.5], [0.5, 0.0, 0.2]])
+    aims = np.array([[0.5, 0.0, 0.3], [0.5, 0.0, 0.04], [1.5, 0.0, 0.0], [0.5, 0.3, 0.2]])
+    poses = poses_from(eyes, look_at_rotations(eyes, aims))
+    block = trimesh.creation.box([0.2, 0.2, 0.3])
+    elsewhere = block.copy()
+    block.apply_translation([0.5, 0.0, 0.15])
+    elsewhere.apply_translation([-0.6, 0.6, 0.15])
+    taken, actual = ArmTakes(model, q0, block.vertices, block.faces, cfg.motion, pcfg)(poses)
+    assert taken.tolist() == [True, False, False, False]
+    assert np.allclose(actual[0][:3, 3], eyes[0], atol=1e-3)
+    assert actual[0][:3, 2] @ poses[0][:3, 2] > np.cos(np.radians(0.5))
+    taken, _ = ArmTakes(model, q0, elsewhere.vertices, elsewhere.faces, cfg.motion, pcfg)(poses)
+    assert taken.tolist() == [True, False, False, True]

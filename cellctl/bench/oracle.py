@@ -1,11 +1,13 @@
 """`cellctl bench --oracle`: how many views a planner that knew the piece would need.
 
 The planners see a piece for the first time; this bench does not. For every scene it casts the
-true mesh (Open3D) from a dense set of camera positions round the painted line (shells 0.3-0.6 m,
-every 7.5 degrees, above the planners' camera floor, kept where the arm's capability map reaches),
+true mesh (Open3D) from a dense set of camera poses round the painted line (shells 0.3-0.6 m,
+every 7.5 degrees from 25 degrees below the aim, kept where the arm can take them: ``ArmTakes``),
 each aimed at one of `AIMS` points of the paint (its centre and the farthest-point samples of it:
 on a basket one aim at the centre frames neither end of the line well),
-with the twin's camera: its field of view, range and grazing limit. Each position sees a set of
+with the twin's camera: its field of view, range and grazing limit. The searches run twice: over
+every pose the arm takes, and over those above the planners' camera floor (`min_camera_z_m`), so
+the price of that floor is measured rather than assumed. Each position sees a set of
 the ground truth's coverage voxels. From the scene's initial view, views are added greedily (the
 one that adds most), starting from each of the `firsts` best first views, and by a beam search;
 the best coverage after 1, 2, 3, 4 views is kept. So the figures are what an all-knowing planner
@@ -25,13 +27,17 @@ from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+import trimesh
 from scipy.stats import spearmanr
 
 from cellctl.bench.scoring import gnbv_states
-from cellctl.config import CellConfig
+from cellctl.config import CellConfig, MotionConfig
+from cellctl.scan.cut import torch_shape
 from planners.clouds import color_mask, frame_to_base_cloud, voxel_keys
 from planners.config import PlannersConfig
 from planners.gnbv import GuidedNBV
+from planners.motion.collision import CollisionChecker, RobotCollisionModel
+from planners.motion.ik_batch import solve_axis_ik_batch
 from planners.motion.kinematics import Kinematics
 from planners.motion.reach_map import reach_map_for
 from planners.views import look_at_rotations, poses_from, quarter_turn
@@ -42,6 +48,8 @@ from sim.twin import Twin
 RADII_M = (0.3, 0.4, 0.5, 0.6)
 STEP_DEG = 7.5
 AIMS = 5
+LOWEST_DEG = -25.0  # candidates from this elevation below their aim: the arm's collision model, not a height, decides
+SCENE_VOXEL_M = 0.01  # the true piece, voxelized for the collision check
 
 
 def aim_points(gt: np.ndarray, n: int = AIMS) -> np.ndarray:
@@ -55,8 +63,9 @@ def aim_points(gt: np.ndarray, n: int = AIMS) -> np.ndarray:
 
 
 def candidate_eyes(centre: np.ndarray, min_z: float, step_deg: float = STEP_DEG) -> np.ndarray:
-    """Camera positions on shells round ``centre``, above ``min_z``, every ``step_deg``."""
-    el = np.radians(np.arange(5.0, 90.0, step_deg))
+    """Camera positions on shells round ``centre``, above ``min_z``, every ``step_deg`` from
+    ``LOWEST_DEG`` of elevation."""
+    el = np.radians(np.arange(LOWEST_DEG, 90.0, step_deg))
     az = np.radians(np.arange(0.0, 360.0, step_deg))
     E, A = np.meshgrid(el, az, indexing="ij")
     dirs = np.column_stack([(np.cos(E) * np.cos(A)).ravel(), (np.cos(E) * np.sin(A)).ravel(), np.sin(E).ravel()])
@@ -64,26 +73,79 @@ def candidate_eyes(centre: np.ndarray, min_z: float, step_deg: float = STEP_DEG)
     return eyes[eyes[:, 2] > min_z]
 
 
-def arm_reach(scene, twin_cfg):
-    """The capability map of the twin's arm (the same for every scene; a twin is opened for its model)."""
+def twin_arm(scene, twin_cfg):
+    """(the twin's arm model, its start configuration): the same for every scene; a twin is opened for them."""
     with Twin(scene, twin_cfg) as twin:
-        m = twin.arm.model
-        kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
-    return reach_map_for(kin)
+        return twin.arm.model, twin.arm.joint_positions()
 
 
-def reachable_candidates(gt: np.ndarray, pcfg: PlannersConfig, reach, step_deg: float = STEP_DEG
-                         ) -> tuple[np.ndarray, np.ndarray]:
-    """(eyes, aims): the candidate positions round each aim point of the paint, above the planners'
-    own camera floor, kept where ``reach`` says the arm can look from there at the aim."""
+def arm_reach(scene, twin_cfg):
+    """The capability map of the twin's arm."""
+    m, _ = twin_arm(scene, twin_cfg)
+    return reach_map_for(Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower,
+                                    upper=m.upper))
+
+
+def reachable_candidates(gt: np.ndarray, pcfg: PlannersConfig, reach, step_deg: float = STEP_DEG,
+                         min_z: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(eyes, aims): the candidate positions round each aim point of the paint, above ``min_z`` (the
+    planners' own camera floor by default), kept where ``reach`` says the arm can look from there at
+    the aim."""
     eyes, aims = [], []
     for aim in aim_points(gt):
-        e = candidate_eyes(aim, pcfg.nbv.min_camera_z_m, step_deg)
+        e = candidate_eyes(aim, pcfg.nbv.min_camera_z_m if min_z is None else min_z, step_deg)
         axes = aim - e
         e = e[reach.reachable(e, axes / np.linalg.norm(axes, axis=1, keepdims=True))]
         eyes.append(e)
         aims.append(np.broadcast_to(aim, e.shape))
     return np.vstack(eyes), np.vstack(aims)
+
+
+class ArmTakes:
+    """Which camera poses the arm can take, as the scan's view motion does: an IK solution inside the
+    joint limits (the scan's own margin) at the pose's roll or its half turn (the image frames the
+    same rectangle), else at any roll about the optical axis, clear of the floor, of itself, of the
+    torch on the hand and of the true piece (voxelized, with the scan's clearance). The capability
+    map alone is optimistic: it knows neither the floor nor the piece, and a pose it passes may have
+    no solution at all."""
+
+    def __init__(self, arm_model, q_start: np.ndarray, mesh_vertices: np.ndarray, mesh_faces: np.ndarray,
+                 mcfg: MotionConfig, pcfg: PlannersConfig):
+        m = arm_model
+        self.kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
+        robot = RobotCollisionModel.from_arm_model(m, mcfg.collision, torch=torch_shape(pcfg.cutpath))
+        self.checker = CollisionChecker(robot, mcfg.collision)
+        mesh = trimesh.Trimesh(np.asarray(mesh_vertices, np.float64), np.asarray(mesh_faces, np.int64), process=False)
+        v = SCENE_VOXEL_M
+        pts = trimesh.sample.sample_surface(mesh, max(20_000, int(mesh.area / (v / 4) ** 2)), seed=0)[0]
+        self.checker.set_scene(np.unique(np.floor(pts / v).astype(np.int64), axis=0) * v + v / 2, v)
+        self.margin = mcfg.ik_margin_rad
+        lo, hi = self.kin.lower + self.margin, self.kin.upper - self.margin
+        rng = np.random.default_rng(0)
+        self.seeds = np.vstack([np.clip(q_start, lo, hi), rng.uniform(lo, hi, size=(mcfg.ik_seeds - 1, self.kin.dof))])
+
+    def __call__(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(taken (N,) bool, the camera poses (N,4,4) the arm takes there) for camera poses (N,4,4):
+        one batch per seed and roll, over the poses still open."""
+        P, Z, X = poses[:, :3, 3], poses[:, :3, 2], poses[:, :3, 0]
+        taken = np.zeros(len(poses), dtype=bool)
+        Q_taken = np.zeros((len(poses), self.kin.dof))
+        for roll in (1.0, -1.0, None):  # the pose's roll, its half turn, then any roll
+            for q0 in self.seeds:
+                todo = np.flatnonzero(~taken)
+                if len(todo) == 0:
+                    break
+                Q, ok = solve_axis_ik_batch(self.kin, P[todo], Z[todo], np.tile(q0, (len(todo), 1)), margin=self.margin,
+                                            x_axes=None if roll is None else roll * X[todo])
+                free = np.zeros(len(todo), dtype=bool)
+                if ok.any():
+                    free[ok] = self.checker.free(Q[ok])
+                taken[todo[free]] = True
+                Q_taken[todo[free]] = Q[free]
+        actual = np.array(poses, dtype=np.float64, copy=True)
+        if taken.any():
+            actual[taken] = self.kin.fk_batch(Q_taken[taken])
+        return taken, actual
 
 
 class TrueViews:
@@ -104,15 +166,21 @@ class TrueViews:
     def seen(self, eye: np.ndarray, aim: np.ndarray | None = None) -> np.ndarray:
         """(V,) bool over the coverage voxels, for the camera at ``eye`` looking at ``aim``
         (the paint's centre by default), roll with the image's up to world up."""
-        c = self.cam
         aim = self.centre if aim is None else aim
-        d = self.gt - eye
-        dist = np.linalg.norm(d, axis=1)
-        u = d / dist[:, None]
         z = (aim - eye) / np.linalg.norm(aim - eye)
         x = np.cross(z, [0.0, 0.0, 1.0])
         x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([1.0, 0.0, 0.0])
-        y = np.cross(z, x)
+        return self._seen(eye, x, np.cross(z, x), z)
+
+    def seen_pose(self, T: np.ndarray) -> np.ndarray:
+        """``seen`` for a camera pose T (4,4), its roll included (the image's wide axis along x)."""
+        return self._seen(T[:3, 3], T[:3, 0], T[:3, 1], T[:3, 2])
+
+    def _seen(self, eye: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        c = self.cam
+        d = self.gt - eye
+        dist = np.linalg.norm(d, axis=1)
+        u = d / dist[:, None]
         cz = u @ z
         ok = (cz > 0) & (np.abs(np.arctan2(u @ x, cz)) < math.radians(c.hfov_deg / 2))
         ok &= np.abs(np.arctan2(u @ y, cz)) < math.radians(c.vfov_deg / 2)
@@ -206,45 +274,62 @@ def first_step(tv: TrueViews, state, pcfg: PlannersConfig) -> dict:
             "gain_rank_correlation": None if not np.isfinite(rho) else round(float(rho), 2)}
 
 
+def _searched(S: np.ndarray, start: np.ndarray, poses: np.ndarray, views: int, firsts: int) -> dict:
+    """The better of greedy and beam after 1..views views over the candidates S (rows of ``poses``)."""
+    if len(S) == 0:
+        return {"candidates": 0, "percent_after": [round(100 * float(start.mean()), 1)] * views,
+                "all_candidates_percent": round(100 * float(start.mean()), 1), "eyes": [], "looking": []}
+    best = [max(g, b, key=lambda r: r[0]) for g, b in zip(greedy_best(S, start, views, firsts),
+                                                          beam_best(S, start, views))]
+    return {"candidates": int(len(S)), "percent_after": [round(100 * b[0], 1) for b in best],
+            "all_candidates_percent": round(100 * float((S.any(axis=0) | start).mean()), 1),
+            "eyes": [[np.round(poses[i][:3, 3], 3).tolist() for i in b[1]] for b in best],
+            "looking": [[np.round(poses[i][:3, 2], 3).tolist() for i in b[1]] for b in best]}
+
+
 def measure(cfg: CellConfig, pcfg: PlannersConfig, scenes: list[str], views: int = 4, firsts: int = 150,
             sensor: str = "cast", step_deg: float = STEP_DEG) -> dict:
     """``sensor``: "cast" (the true mesh cast with the camera's field, range and grazing limit, two
     poses per millisecond) or "twin" (each candidate rendered by the twin at two rolls, about 0.3 s
-    each; G-NBV's first step is then left out)."""
+    each; G-NBV's first step is then left out). Each scene's row holds the searches over every pose
+    the arm takes, and under ``above_floor`` the same over those above the planners' camera floor."""
     if sensor not in ("cast", "twin"):
         raise ValueError(f"sensor must be 'cast' or 'twin', got {sensor!r}")
     voxel = pcfg.coverage_voxel_m
+    floor = pcfg.nbv.min_camera_z_m
     twin_cfg = cfg.twin.model_copy(update={"camera": cfg.twin.camera.model_copy(update={"noise": False})})
     rows = []
+    arm_model, q_start = twin_arm(load_scene(scenes[0]), twin_cfg)
     reach = arm_reach(load_scene(scenes[0]), twin_cfg)
     for name in scenes:
         scene = load_scene(name)
-        eyes, aims = reachable_candidates(scene.gt_points, pcfg, reach, step_deg)
+        eyes, aims = reachable_candidates(scene.gt_points, pcfg, reach, step_deg,
+                                          min_z=cfg.motion.collision.floor_margin_m)
+        poses = rolled_poses(eyes, aims)
+        offered = len(poses)
+        taken, actual = ArmTakes(arm_model, q_start, scene.full_mesh.vertices, scene.full_mesh.faces, cfg.motion,
+                                 pcfg)(poses)
+        poses = actual[taken]
         T0 = scene.initial_view_candidates[0]
         if sensor == "cast":
             tv = TrueViews(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points, voxel, twin_cfg.camera)
-            S = np.array([tv.seen(e, a) for e, a in zip(eyes, aims)])  # one cast per candidate, all its points at once
+            S = np.array([tv.seen_pose(T) for T in poses], dtype=bool).reshape(len(poses), -1)
             start = tv.seen(T0[:3, 3], T0[:3, 3] + T0[:3, 2])
-            poses = poses_from(eyes, look_at_rotations(eyes, aims))
             first = first_step(tv, gnbv_states(cfg, pcfg, name)[0], pcfg)
         else:
             with Twin(scene, twin_cfg) as twin:
                 tv = TwinViews(twin, scene.gt_points, voxel, pcfg.color)
-                poses = rolled_poses(eyes, aims)
-                S = np.array([tv.seen_pose(T) for T in poses])
+                S = np.array([tv.seen_pose(T) for T in poses], dtype=bool).reshape(len(poses), -1)
                 start = tv.seen_pose(T0)
             first = None
-        best = [max(g, b, key=lambda r: r[0]) for g, b in zip(greedy_best(S, start, views, firsts),
-                                                              beam_best(S, start, views))]
-        rows.append({"scene": name, "category": scene.category, "voxels": int(len(tv.keys)), "candidates": int(len(S)),
-                     "initial_percent": round(100 * float(start.mean()), 1),
-                     "percent_after": [round(100 * b[0], 1) for b in best],
-                     "all_candidates_percent": round(100 * float((S.any(axis=0) | start).mean()), 1),
-                     "eyes": [[np.round(poses[i][:3, 3], 3).tolist() for i in b[1]] for b in best],
-                     "looking": [[np.round(poses[i][:3, 2], 3).tolist() for i in b[1]] for b in best],
+        high = poses[:, 2, 3] >= floor
+        rows.append({"scene": name, "category": scene.category, "voxels": int(len(tv.keys)),
+                     "initial_percent": round(100 * float(start.mean()), 1), "offered": offered,
+                     **_searched(S, start, poses, views, firsts),
+                     "above_floor": _searched(S[high], start, poses[high], views, firsts),
                      "gnbv_first_step": first})
-    return {"voxel_m": voxel, "radii_m": list(RADII_M), "step_deg": step_deg, "aims": AIMS, "firsts": firsts,
-            "sensor": sensor, "scenes": rows}
+    return {"voxel_m": voxel, "radii_m": list(RADII_M), "step_deg": step_deg, "lowest_deg": LOWEST_DEG,
+            "aims": AIMS, "firsts": firsts, "sensor": sensor, "camera_floor_m": floor, "scenes": rows}
 
 
 def write(result: dict, out: Path) -> Path:
@@ -255,17 +340,25 @@ def write(result: dict, out: Path) -> Path:
     camera = ("the twin's own frames (noise-free depth with its range, grazing and depth-discontinuity dropouts, the "
               "paint filter), each position at two rolls" if twin else "the true mesh cast with the twin's camera "
               "without noise (field of view, range, grazing limit)")
+    floor = result.get("camera_floor_m")
     lines = ["# What a planner that knew the piece would need (`cellctl bench --oracle`)", "",
              "Coverage % of the ground truth's voxels after the initial view and n more, the better of greedy from "
-             f"each of the {result['firsts']} best first views and a beam search, over reachable positions on shells {result['radii_m']} m every "
-             f"{result['step_deg']} deg, each aimed at one of {result['aims']} points of the paint (its centre and "
-             f"farthest-point samples); seen by {camera}. \"all\": every candidate together, the most any number "
-             "of these views can show.", "",
-             "| scene | category | voxels | candidates | initial | " + " | ".join(f"{k} views" for k in range(1, n + 1))
-             + " | all |", "|---|---|--:|--:|--:|" + "--:|" * (n + 1)]
+             f"each of the {result['firsts']} best first views and a beam search, over camera poses on shells "
+             f"{result['radii_m']} m every {result['step_deg']} deg from {result.get('lowest_deg', 5.0)} deg of "
+             f"elevation, each aimed at one of {result['aims']} points of the paint (its centre and farthest-point "
+             f"samples), kept where the arm can take them (collision-free IK: floor, itself, torch, the true piece); "
+             f"seen by {camera}. Each scene twice: every pose the arm takes, and only those above the planners' camera "
+             f"floor ({floor} m). \"offered\": poses before the arm's check; \"all\": every candidate together, the most "
+             "any number of these views can show.", "",
+             "| scene | category | voxels | poses | offered | candidates | initial | "
+             + " | ".join(f"{k} views" for k in range(1, n + 1)) + " | all |", "|---|---|--:|---|--:|--:|--:|" + "--:|" * (n + 1)]
     for r in result["scenes"]:
-        lines.append(f"| {r['scene']} | {r['category'] or '-'} | {r['voxels']} | {r['candidates']} | {r['initial_percent']} | "
-                     + " | ".join(str(p) for p in r["percent_after"]) + f" | {r.get('all_candidates_percent', '')} |")
+        for where, q in (("the arm takes", r), (f"above {floor} m", r.get("above_floor"))):
+            if q is None:
+                continue
+            lines.append(f"| {r['scene']} | {r['category'] or '-'} | {r['voxels']} | {where} | {r.get('offered', '')} | "
+                         f"{q['candidates']} | {r['initial_percent']} | " + " | ".join(str(p) for p in q["percent_after"])
+                         + f" | {q.get('all_candidates_percent', '')} |")
     if not twin:
         lines += ["", "## G-NBV's first step against the truth", "",
                   "After the initial view (noise-free twin; every candidate, no reach filter): the share of the ground truth's voxels the drawing lacks that "
