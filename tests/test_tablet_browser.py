@@ -160,6 +160,10 @@ def _tour(page, tab, cell: dict, shots: Path, tmp_path: Path) -> None:
 
             # a viewer sees a running job and cannot start or cancel
             page.get_by_role("button", name="Log out").click()
+            # the server navigates to the login page over its websocket: a goto started before that
+            # navigation lands is aborted by it (net::ERR_ABORTED), so wait for it to land
+            expect(page).to_have_url(re.compile(r"/login$"))
+            expect(page.get_by_test_id("login")).to_be_visible()
             _login(page, tab.url, VIEWER)
             expect(page.get_by_test_id("who")).to_have_text("vic (viewer)")
             with svc.client() as c:
