@@ -149,9 +149,10 @@ def test_the_arm_takes_a_view_from_above_and_refuses_one_at_the_table_one_in_the
     elsewhere = block.copy()
     block.apply_translation([0.5, 0.0, 0.15])
     elsewhere.apply_translation([-0.6, 0.6, 0.15])
-    taken, actual = ArmTakes(model, q0, block.vertices, block.faces, cfg.motion, pcfg)(poses)
+    takes = ArmTakes(model, q0, cfg.motion, pcfg)
+    taken, actual = takes.piece(block.vertices, block.faces)(poses)
     assert taken.tolist() == [True, False, False, False]
     assert np.allclose(actual[0][:3, 3], eyes[0], atol=1e-3)
     assert actual[0][:3, 2] @ poses[0][:3, 2] > np.cos(np.radians(0.5))
-    taken, _ = ArmTakes(model, q0, elsewhere.vertices, elsewhere.faces, cfg.motion, pcfg)(poses)
+    taken, _ = takes.piece(elsewhere.vertices, elsewhere.faces)(poses)
     assert taken.tolist() == [True, False, False, True]

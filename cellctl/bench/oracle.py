@@ -37,7 +37,7 @@ from planners.clouds import color_mask, frame_to_base_cloud, voxel_keys
 from planners.config import PlannersConfig
 from planners.gnbv import GuidedNBV
 from planners.motion.collision import CollisionChecker, RobotCollisionModel
-from planners.motion.ik_batch import solve_axis_ik_batch
+from planners.motion.ik_batch import solve_axis_ik_batch, spread_seeds
 from planners.motion.kinematics import Kinematics
 from planners.motion.reach_map import reach_map_for
 from planners.views import look_at_rotations, poses_from, quarter_turn
@@ -79,13 +79,6 @@ def twin_arm(scene, twin_cfg):
         return twin.arm.model, twin.arm.joint_positions()
 
 
-def arm_reach(scene, twin_cfg):
-    """The capability map of the twin's arm."""
-    m, _ = twin_arm(scene, twin_cfg)
-    return reach_map_for(Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower,
-                                    upper=m.upper))
-
-
 def reachable_candidates(gt: np.ndarray, pcfg: PlannersConfig, reach, step_deg: float = STEP_DEG,
                          min_z: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(eyes, aims): the candidate positions round each aim point of the paint, above ``min_z`` (the
@@ -105,24 +98,25 @@ class ArmTakes:
     """Which camera poses the arm can take, as the scan's view motion does: an IK solution inside the
     joint limits (the scan's own margin) at the pose's roll or its half turn (the image frames the
     same rectangle), else at any roll about the optical axis, clear of the floor, of itself, of the
-    torch on the hand and of the true piece (voxelized, with the scan's clearance). The capability
-    map alone is optimistic: it knows neither the floor nor the piece, and a pose it passes may have
-    no solution at all."""
+    torch on the hand and of the piece given to ``piece`` (voxelized, with the scan's clearance). The
+    capability map alone is optimistic: it knows neither the floor nor the piece, and a pose it
+    passes may have no solution at all. The arm's models are built once; only the piece changes."""
 
-    def __init__(self, arm_model, q_start: np.ndarray, mesh_vertices: np.ndarray, mesh_faces: np.ndarray,
-                 mcfg: MotionConfig, pcfg: PlannersConfig):
+    def __init__(self, arm_model, q_start: np.ndarray, mcfg: MotionConfig, pcfg: PlannersConfig):
         m = arm_model
         self.kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
         robot = RobotCollisionModel.from_arm_model(m, mcfg.collision, torch=torch_shape(pcfg.cutpath))
         self.checker = CollisionChecker(robot, mcfg.collision)
+        self.margin = mcfg.ik_margin_rad
+        self.seeds = spread_seeds(self.kin, q_start, mcfg.ik_seeds, self.margin)
+
+    def piece(self, mesh_vertices: np.ndarray, mesh_faces: np.ndarray) -> ArmTakes:
+        """The piece the arm must keep clear of: its surface, voxelized at ``SCENE_VOXEL_M``."""
         mesh = trimesh.Trimesh(np.asarray(mesh_vertices, np.float64), np.asarray(mesh_faces, np.int64), process=False)
         v = SCENE_VOXEL_M
         pts = trimesh.sample.sample_surface(mesh, max(20_000, int(mesh.area / (v / 4) ** 2)), seed=0)[0]
         self.checker.set_scene(np.unique(np.floor(pts / v).astype(np.int64), axis=0) * v + v / 2, v)
-        self.margin = mcfg.ik_margin_rad
-        lo, hi = self.kin.lower + self.margin, self.kin.upper - self.margin
-        rng = np.random.default_rng(0)
-        self.seeds = np.vstack([np.clip(q_start, lo, hi), rng.uniform(lo, hi, size=(mcfg.ik_seeds - 1, self.kin.dof))])
+        return self
 
     def __call__(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(taken (N,) bool, the camera poses (N,4,4) the arm takes there) for camera poses (N,4,4):
@@ -299,16 +293,15 @@ def measure(cfg: CellConfig, pcfg: PlannersConfig, scenes: list[str], views: int
     floor = pcfg.nbv.min_camera_z_m
     twin_cfg = cfg.twin.model_copy(update={"camera": cfg.twin.camera.model_copy(update={"noise": False})})
     rows = []
-    arm_model, q_start = twin_arm(load_scene(scenes[0]), twin_cfg)
-    reach = arm_reach(load_scene(scenes[0]), twin_cfg)
+    takes = ArmTakes(*twin_arm(load_scene(scenes[0]), twin_cfg), cfg.motion, pcfg)
+    reach = reach_map_for(takes.kin)  # a cheap first cut before the IK
     for name in scenes:
         scene = load_scene(name)
         eyes, aims = reachable_candidates(scene.gt_points, pcfg, reach, step_deg,
                                           min_z=cfg.motion.collision.floor_margin_m)
         poses = rolled_poses(eyes, aims)
         offered = len(poses)
-        taken, actual = ArmTakes(arm_model, q_start, scene.full_mesh.vertices, scene.full_mesh.faces, cfg.motion,
-                                 pcfg)(poses)
+        taken, actual = takes.piece(scene.full_mesh.vertices, scene.full_mesh.faces)(poses)
         poses = actual[taken]
         T0 = scene.initial_view_candidates[0]
         if sensor == "cast":

@@ -25,7 +25,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from planners.config import CutPathConfig
-from planners.motion.ik_batch import solve_axis_ik_batch
+from planners.motion.ik_batch import solve_axis_ik_batch, spread_seeds
 from planners.motion.kinematics import Kinematics
 
 IsFree = Callable[[np.ndarray], np.ndarray]
@@ -107,15 +107,6 @@ def tilt_directions(cfg: CutPathConfig) -> np.ndarray:
     return d[np.sort(keep)]
 
 
-def _global_seeds(kin: Kinematics, q_start: np.ndarray, count: int, margin: float) -> np.ndarray:
-    lo, hi = kin.lower + margin, kin.upper - margin
-    rng = np.random.default_rng(0)
-    seeds = [np.clip(q_start, lo, hi)]
-    if count > 1:
-        seeds += list(rng.uniform(lo, hi, size=(count - 1, kin.dof)))
-    return np.array(seeds)
-
-
 @dataclass
 class Rungs:
     """A branch's IK solutions: every layer (path point) x tilt x seed."""
@@ -158,7 +149,7 @@ def solve_rungs(kin: Kinematics, branch_poses: list[np.ndarray], q_start: np.nda
     tips = poses[:, None, :3, 3] + cfg.standoff_m * (poses[:, None, :3, 2] - axes)  # tilt about the paint point
     centre, radius = kin.reach_sphere("cam")
     in_reach = np.linalg.norm(tips - centre, axis=2) <= radius  # (N,O)
-    seeds = _global_seeds(kin, q_start, S, cfg.ik_margin_rad)
+    seeds = spread_seeds(kin, q_start, S, cfg.ik_margin_rad)
     # a fixed roll keeps the torch's x along the travel (the nominal pose's x made orthogonal to the axis)
     xs = None if cfg.free_roll else np.broadcast_to(poses[:, None, :3, 0], axes.shape)
     Qn, okn = solve_axis_ik_batch(kin, np.repeat(tips[:, 0], S, 0), np.repeat(axes[:, 0], S, 0),

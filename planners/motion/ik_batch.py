@@ -20,6 +20,17 @@ def _chain(kin: Kinematics, Q: np.ndarray, frame: str) -> tuple[np.ndarray, np.n
     return kin._kernels[frame].poses_axes(Q)
 
 
+def spread_seeds(kin: Kinematics, q_start: np.ndarray, count: int, margin: float) -> np.ndarray:
+    """(count, dof) starts for a batch: ``q_start`` (clamped into the limits shrunk by ``margin``),
+    then configurations drawn uniformly inside them, the same on every call (seed 0)."""
+    lo, hi = kin.lower + margin, kin.upper - margin
+    rng = np.random.default_rng(0)
+    seeds = [np.clip(q_start, lo, hi)]
+    if count > 1:
+        seeds += list(rng.uniform(lo, hi, size=(count - 1, kin.dof)))
+    return np.array(seeds)
+
+
 def solve_axis_ik_batch(kin: Kinematics, positions: np.ndarray, axes: np.ndarray, Q0: np.ndarray, *,
                         margin: float = 0.05, tol_pos: float = 1e-4, tol_ang: float = 1e-3,
                         max_iter: int = 150, frame: str = "cam",

@@ -2,7 +2,8 @@
 # Usage, from the repo root: .venv/bin/python docs/bench/2026-12-04-basket-ceiling/run.py 10 0 2 (and 10 1 2 beside it);
 # then analyse.py "/tmp/orc/S_10.0_std_*.npz".
 # Ran at 68731cf: from the thirteenth step on, the oracle's candidates start 25 deg below their aim and
-# pass the arm's own check (oracle.ArmTakes), so check that commit out to reproduce analyse.out.
+# pass the arm's own check (oracle.ArmTakes), and oracle.arm_reach is gone: this script runs only at
+# that commit (git checkout 68731cf), which reproduces analyse.out.
 """Session script: the twin oracle on the basket at a finer step, shard k of K, saving S."""
 import sys, time, numpy as np
 from cellctl.bench import oracle as ob
