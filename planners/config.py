@@ -87,8 +87,6 @@ class NBVConfig(_Strict):
                                           description="the cone tried when no square-on view gains anything")
     min_camera_z_m: float = Field(0.12, description="candidates below this height are not generated")
     clearance_m: float = Field(0.12, ge=0, le=0.5, description="candidates this close to occupied cells are dropped")
-    piece_clearance_only: bool = Field(False, description="clearance_m from the piece's cells only (above floor_z_m): "
-                                       "the floor is min_camera_z_m's and the arm's collision model's")
     unknown_visibility: float = Field(0.99, gt=0, le=1,
                                       description="P[o=0] in eq. 8 of an unknown cell no ray has ended before: "
                                       "most unknown space round a piece is air, and a view into new ground looks through "

@@ -147,7 +147,7 @@ class GuidedNBV:
         # nearest tried, so a single unresolvable corner does not end the scan.
         order = np.argsort(np.linalg.norm(cents - cam, axis=1)) if len(cents) else np.zeros(0, int)
         p_free = nbv.visibility_field(grid, cfg)
-        occupied = nbv.OccupiedIndex(grid, cfg)
+        occupied = nbv.OccupiedIndex(grid)
         self._prior = None
         if cfg.line_prior_m > 0 and usable.any():
             self._prior = line_prior(state.drawing.xyz, state.surface.xyz, state.surface.origin, grid,

@@ -163,13 +163,11 @@ def quality(gain: np.ndarray, cost: np.ndarray, lam: float) -> np.ndarray:
 class OccupiedIndex:
     """The occupied cells of one grid state, indexed once per planning step rather than per query."""
 
-    def __init__(self, grid: OccupancyGrid, cfg: NBVConfig | None = None):
+    def __init__(self, grid: OccupancyGrid):
         occ = grid.occupied
         self.flat = occ.reshape(-1).view(np.uint8)
-        c = grid.centers(np.argwhere(occ))
-        if cfg is not None and cfg.piece_clearance_only:  # the floor is kept by min_camera_z_m and the arm's collision model
-            c = c[c[:, 2] > cfg.floor_z_m]
-        self.tree = cKDTree(c) if len(c) else None
+        ijk = np.argwhere(occ)
+        self.tree = cKDTree(grid.centers(ijk)) if len(ijk) else None
 
 
 def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, normal: np.ndarray | None,
@@ -182,10 +180,7 @@ def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, nor
     `normal` are one (3,) for all eyes or one row per eye; a NaN normal row means no cone."""
     targets = np.broadcast_to(np.asarray(target, dtype=np.float64), eyes.shape)
     margin = cfg.clearance_m
-    low = grid.lo + margin
-    if cfg.piece_clearance_only:
-        low[2] = grid.lo[2]
-    ok = np.all((eyes >= low) & (eyes <= grid.hi - margin), axis=1)
+    ok = np.all((eyes >= grid.lo + margin) & (eyes <= grid.hi - margin), axis=1)
     ok &= eyes[:, 2] >= cfg.min_camera_z_m
     if normal is not None:
         normals = np.broadcast_to(np.asarray(normal, dtype=np.float64), eyes.shape)
@@ -200,7 +195,7 @@ def feasible_eyes(grid: OccupancyGrid, eyes: np.ndarray, target: np.ndarray, nor
         ok &= ~behind
     if past_views is not None:
         ok &= ~repeats(eyes, targets, past_views, cfg.revisit_angle_deg)
-    occupied = occupied or OccupiedIndex(grid, cfg)
+    occupied = occupied or OccupiedIndex(grid)
     if occupied.tree is not None and ok.any() and margin > 0:
         d, _ = occupied.tree.query(eyes[ok], k=1, distance_upper_bound=margin)
         idx = np.flatnonzero(ok)

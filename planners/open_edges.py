@@ -195,7 +195,7 @@ class EdgeViews:
         todo = [i for i in range(len(groups)) if not self._looked_at(cents[i], ways[i], grid.voxel)]
         if not todo:
             return None
-        occupied = occupied or nbv.OccupiedIndex(grid, cfg)
+        occupied = occupied or nbv.OccupiedIndex(grid)
         cam = state.camera_pose[:3, 3]
         for i in todo:  # the largest group first: the view budget may end before the last
             c = cents[i]
@@ -256,7 +256,7 @@ class EdgeViews:
         if len(edges.xyz) > JOINT_POINTS:  # a fixed thinning: the score is a sum over borders
             keep = np.linspace(0, len(edges.xyz) - 1, JOINT_POINTS).astype(np.int64)
             edges = OpenEdges(edges.xyz[keep], edges.normals[keep], edges.outward[keep], edges.index[keep])
-        occupied = occupied or nbv.OccupiedIndex(grid, cfg)
+        occupied = occupied or nbv.OccupiedIndex(grid)
         c = edges.xyz.mean(axis=0)
         eyes = c + self._lattice
         eyes = eyes[nbv.feasible_eyes(grid, eyes, c, None, cfg, state.viewpoints, occupied=occupied)]
