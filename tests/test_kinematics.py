@@ -80,6 +80,22 @@ def test_limits_from_urdf(kin):
     np.testing.assert_allclose(k2.upper, PANDA_Q_MAX)
 
 
+def test_a_driver_s_arm_model_gives_its_limits_and_hand_eye_to_the_kinematics():
+    from drivers.interfaces import ArmModel
+
+    lo, hi = PANDA_Q_MIN + 0.1, PANDA_Q_MAX - 0.1  # a driver's margin inside the published limits
+    T = hand_eye()
+    T[:3, 3] = [0.07, 0.01, 0.05]
+    z = np.zeros(7)
+    model = ArmModel(urdf_path=URDF, base_link="panda_link0", flange_link=FLANGE, joint_names=PANDA_JOINT_NAMES,
+                     lower=lo, upper=hi, max_velocity=z, max_acceleration=z, max_jerk=z, T_flange_cam=T)
+    k = Kinematics.from_arm_model(model)
+    np.testing.assert_allclose(k.lower, lo)
+    np.testing.assert_allclose(k.upper, hi)
+    q = np.asarray(PANDA_Q_READY, dtype=np.float64)
+    np.testing.assert_allclose(k.fk(q, "cam"), k.fk(q, "flange") @ T, atol=1e-12)
+
+
 def test_bad_names_rejected():
     with pytest.raises(ValueError, match="not_a_link"):
         Kinematics(URDF, PANDA_JOINT_NAMES, "not_a_link", hand_eye())

@@ -104,7 +104,7 @@ class ArmTakes:
 
     def __init__(self, arm_model, q_start: np.ndarray, mcfg: MotionConfig, pcfg: PlannersConfig):
         m = arm_model
-        self.kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
+        self.kin = Kinematics.from_arm_model(m)
         robot = RobotCollisionModel.from_arm_model(m, mcfg.collision, torch=torch_shape(pcfg.cutpath))
         self.checker = CollisionChecker(robot, mcfg.collision)
         self.margin = mcfg.ik_margin_rad

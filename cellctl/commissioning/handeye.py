@@ -103,7 +103,7 @@ def _motion_planner(arm: Arm, mcfg: MotionConfig, T_base_board: np.ndarray, boar
     """IK, Ruckig and collision checks as for scan views, with the board a static obstacle and the
     roll about the optical axis as asked (calibration needs rotation about every axis)."""
     m = arm.model
-    kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
+    kin = Kinematics.from_arm_model(m)
     checker = None
     if mcfg.check_collisions:
         w, h = board.size_m
@@ -128,8 +128,7 @@ def locate_board(arm: Arm, camera: RGBDCamera, board: CharucoBoardConfig, *, set
                  flush_frames: int = 0, dist: np.ndarray | None = None) -> np.ndarray:
     """T_base_board seen from where the arm is now, through the extrinsic the arm carries (good
     enough to aim the views). Raises HandEyeError when the board is not in view."""
-    m = arm.model
-    kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
+    kin = Kinematics.from_arm_model(arm.model)
     frame = _capture(camera, settle_s, flush_frames)
     view = detect_board(frame.color, frame.intrinsics.matrix(), board, dist)
     if view is None:

@@ -80,7 +80,7 @@ class ScanJob:
         self.stopped_as = stopped_as  # why, in terminated_by's words: cancelled (operator), timeout, interrupted
         self.planner = make_planner(planner_name, pcfg)
         m = arm.model
-        self.kin = Kinematics(m.urdf_path, m.joint_names, m.flange_link, m.T_flange_cam, lower=m.lower, upper=m.upper)
+        self.kin = Kinematics.from_arm_model(m)
         self.reach = reach_map_for(self.kin)  # which candidate views the arm can take at all
         # the torch rides on the hand through the scan too: its moves keep it clear like any link
         self.robot = RobotCollisionModel.from_arm_model(m, mcfg.collision, torch=torch_shape(pcfg.cutpath))

@@ -51,6 +51,13 @@ class Kinematics:
         ValueError: unknown joint or link name, a joint that is not 1-DOF, bad extrinsic/limits.
     """
 
+    @classmethod
+    def from_arm_model(cls, model) -> Kinematics:
+        """The camera's kinematics of a driver's arm model (``drivers.interfaces.ArmModel``: its URDF,
+        joints, flange, hand-eye and limits), one constructor for every part that moves that arm."""
+        return cls(model.urdf_path, model.joint_names, model.flange_link, model.T_flange_cam,
+                   lower=model.lower, upper=model.upper)
+
     def __init__(
         self,
         urdf_path: str,
