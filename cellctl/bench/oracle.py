@@ -79,14 +79,12 @@ def twin_arm(scene, twin_cfg):
         return twin.arm.model, twin.arm.joint_positions()
 
 
-def reachable_candidates(gt: np.ndarray, pcfg: PlannersConfig, reach, step_deg: float = STEP_DEG,
-                         min_z: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(eyes, aims): the candidate positions round each aim point of the paint, above ``min_z`` (the
-    planners' own camera floor by default), kept where ``reach`` says the arm can look from there at
-    the aim."""
+def reachable_candidates(gt: np.ndarray, reach, min_z: float, step_deg: float = STEP_DEG) -> tuple[np.ndarray, np.ndarray]:
+    """(eyes, aims): the candidate positions round each aim point of the paint, above ``min_z``, kept
+    where ``reach`` says the arm can look from there at the aim."""
     eyes, aims = [], []
     for aim in aim_points(gt):
-        e = candidate_eyes(aim, pcfg.nbv.min_camera_z_m if min_z is None else min_z, step_deg)
+        e = candidate_eyes(aim, min_z, step_deg)
         axes = aim - e
         e = e[reach.reachable(e, axes / np.linalg.norm(axes, axis=1, keepdims=True))]
         eyes.append(e)
@@ -103,9 +101,8 @@ class ArmTakes:
     passes may have no solution at all. The arm's models are built once; only the piece changes."""
 
     def __init__(self, arm_model, q_start: np.ndarray, mcfg: MotionConfig, pcfg: PlannersConfig):
-        m = arm_model
-        self.kin = Kinematics.from_arm_model(m)
-        robot = RobotCollisionModel.from_arm_model(m, mcfg.collision, torch=torch_shape(pcfg.cutpath))
+        self.kin = Kinematics.from_arm_model(arm_model)
+        robot = RobotCollisionModel.from_arm_model(arm_model, mcfg.collision, torch=torch_shape(pcfg.cutpath))
         self.checker = CollisionChecker(robot, mcfg.collision)
         self.margin = mcfg.ik_margin_rad
         self.seeds = spread_seeds(self.kin, q_start, mcfg.ik_seeds, self.margin)
@@ -297,8 +294,7 @@ def measure(cfg: CellConfig, pcfg: PlannersConfig, scenes: list[str], views: int
     reach = reach_map_for(takes.kin)  # a cheap first cut before the IK
     for name in scenes:
         scene = load_scene(name)
-        eyes, aims = reachable_candidates(scene.gt_points, pcfg, reach, step_deg,
-                                          min_z=cfg.motion.collision.floor_margin_m)
+        eyes, aims = reachable_candidates(scene.gt_points, reach, cfg.motion.collision.floor_margin_m, step_deg)
         poses = rolled_poses(eyes, aims)
         offered = len(poses)
         taken, actual = takes.piece(scene.full_mesh.vertices, scene.full_mesh.faces)(poses)
