@@ -365,6 +365,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "own sensor, its depth-discontinuity dropouts included (about 0.3 s per pose)")
     b.add_argument("--oracle-step-deg", type=float, default=7.5,
                    help="with --oracle: spacing of the candidate positions on their shells (default: 7.5)")
+    b.add_argument("--generated", type=int, default=None, metavar="N",
+                   help="instead of built-in scenes: the first N generated scrap pieces of --gen-seed (sim.scenes.scrap; "
+                        "default planner gnbv, 1 seed), each with the cut oracle beside the cell's cut")
+    b.add_argument("--gen-seed", type=int, default=0, help="with --generated: the generator's seed (default: 0)")
+    b.add_argument("--no-cut-oracle", action="store_true",
+                   help="with --generated: skip the cut oracle (the planner given the true paint and piece)")
     b.add_argument("--report", default=None, metavar="BENCH_JSON",
                    help="only rewrite bench.md and the plots next to this bench.json, no scans")
     b.set_defaults(func=_bench)

@@ -265,6 +265,13 @@ class CutPathConfig(_Strict):
     cut_margin_m: float = Field(0.005, ge=0, le=0.1, description="clearance of arm and torch from the scan")
     max_clearing_views: int = Field(2, ge=0, le=8, description="views after the scan where unseen space blocks the torch")
     nozzle_margin_m: float = Field(0.002, ge=0, le=0.05, description="clearance of the nozzle from the scanned surface")
+    # the cut against the paint (planners.cutpath.paint_report)
+    line_tolerance_m: float = Field(0.005, gt=0, le=0.05, description="a flame spot this close to the painted line's "
+                                    "centre is on it; paint farther than half the spray width plus this from every "
+                                    "cut is left uncut")
+    spray_width_m: float = Field(0.02, gt=0, le=0.1, description="the spray's width where no line can measure it")
+    share_disagreement: float = Field(0.03, gt=0, le=1, description="the cut's own share and the paint's differing "
+                                      "by more than this is a warning")
 
     @model_validator(mode="after")
     def _sizes(self) -> "CutPathConfig":

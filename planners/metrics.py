@@ -42,7 +42,7 @@ def displacement(positions: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
 
 
-def _dense(polylines: list[np.ndarray], step: float) -> np.ndarray:
+def dense_polylines(polylines: list[np.ndarray], step: float) -> np.ndarray:
     """Points every ``step`` along each polyline (ends kept), stacked (M,3)."""
     out = []
     for p in polylines:
@@ -68,7 +68,7 @@ def cut_accuracy(true_polylines: list[np.ndarray], cuts: list[np.ndarray], toler
     paint) counts: where a line crosses the air between the bars of a basket there is nothing to cut."""
     from scipy.spatial import cKDTree
 
-    line = _dense(true_polylines, step_m)
+    line = dense_polylines(true_polylines, step_m)
     if painted is not None and len(painted) and len(line):
         line = line[cKDTree(np.asarray(painted, dtype=np.float64)).query(line)[0] <= on_metal_m]
     if len(line) == 0:
@@ -76,7 +76,7 @@ def cut_accuracy(true_polylines: list[np.ndarray], cuts: list[np.ndarray], toler
     out = {"strokes": len(true_polylines), "cuts": len(cuts), "line_on_metal_m": round(step_m * len(line), 4),
            "cut_coverage": 0.0, "path_to_line_mean_mm": None,
            "path_to_line_max_mm": None, "line_to_path_mean_mm": None, "line_to_path_max_mm": None}
-    path = _dense(cuts, step_m)
+    path = dense_polylines(cuts, step_m)
     if len(path) == 0:
         return out
     d_line, _ = cKDTree(path).query(line)

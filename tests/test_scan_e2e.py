@@ -151,6 +151,14 @@ def test_scan_ends_with_a_cutting_path_the_twin_can_follow(cell, tmp_path):
     d = c.dry_run
     assert d.motions == 3 * c.feasible_branches and d.contacts == 0 and d.contact_log == []
     assert d.tip_error_max_mm < 2.0 and d.path_error_max_mm < 2.0
+    # the cut against what the scan saw agrees with the truth, and the executed flame stays on the paint
+    p = c.paint
+    assert p is not None and abs(p.cut_share - a.cut_coverage) <= 0.05, (p, a)
+    assert 0.7 < p.line_length_m < 1.3 and 14 <= p.spray_width_mm <= 26, p
+    assert a.path_to_line_max_mm <= 5.0 and a.pose_to_line_max_mm <= 5.0, a
+    assert 7.0 <= a.tip_to_metal_min_mm <= a.tip_to_metal_max_mm <= 13.0, a
+    assert d.flame_off_paint_max_mm is not None and d.flame_off_paint_max_mm < 5.0, d
+    assert d.flame_to_line_max_mm is not None and d.flame_to_line_max_mm <= a.path_to_line_max_mm + 2.0, d
 
 
 def test_user_yaml_scene_with_obj_mesh_scans(cell, tmp_path):

@@ -107,11 +107,25 @@ def cut_record(cut: CutSummary | None) -> dict | None:
         if g.length_m > 0:
             gaps[g.reason] = round(gaps.get(g.reason, 0.0) + g.length_m, 4)
     dry = cut.dry_run
-    return {"fraction": cut.cut_fraction, "cuts": cut.feasible_branches,
+    paint = cut.paint
+    return {"fraction": cut.cut_fraction, "cuts": cut.feasible_branches, "cut_lengths_m": list(cut.cut_lengths_m),
+            "paint": paint and paint.model_dump(exclude={"uncut"}),
+            "uncut_paint_m_by_reason": _uncut_paint(paint),
             "planning_s": round(cut.planning_s, 3), "uncut_m_by_reason": gaps,
             "accuracy": cut.accuracy and cut.accuracy.model_dump(), "error": cut.error,
             "clearing_views": cut.clearing_views,
-            "dry_run_contacts": dry and dry.contacts, "dry_run_tip_error_max_mm": dry and dry.tip_error_max_mm}
+            "dry_run_contacts": dry and dry.contacts, "dry_run_tip_error_max_mm": dry and dry.tip_error_max_mm,
+            "dry_run_flame_off_paint_max_mm": dry and dry.flame_off_paint_max_mm,
+            "dry_run_flame_to_line_max_mm": dry and dry.flame_to_line_max_mm}
+
+
+def _uncut_paint(paint) -> dict[str, float] | None:
+    if paint is None:
+        return None
+    out: dict[str, float] = {}
+    for u in paint.uncut:
+        out[u.reason] = round(out.get(u.reason, 0.0) + u.length_m, 4)
+    return out
 
 
 class Progress:
@@ -180,9 +194,12 @@ def _subdirs(p: Path) -> set[Path]:
 
 def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list[str], seeds: int, out: Path, *,
               memory: bool = True, quick: bool = False, stream: TextIO | None = None,
-              dry_run_cut: bool = False) -> dict:
+              dry_run_cut: bool = False, cut_oracle: bool = False, generated: dict | None = None) -> dict:
     """Run the grid, write OUT/bench.json (after every run) and OUT/runs/seed<k>/<run folders>;
-    returns the bench document. The report is written by the caller (cellctl.bench.report)."""
+    returns the bench document. The report is written by the caller (cellctl.bench.report).
+    ``cut_oracle``: each scene's cut planned from its truth too (``cut_oracle.oracle_cut``), under
+    ``cut_oracles``; ``generated``: the generator's n and seed, when the scenes are generated pieces
+    (their family and lines under ``pieces``)."""
     from cellctl.scan.run import run_job
     from planners.config import load_planners_config
     from sim.scenes import load_scene
@@ -203,7 +220,10 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
         "created": datetime.now().astimezone().isoformat(timespec="seconds"),
         "complete": False,
         "bench": {"scenes": scenes, "planners": planners, "seeds": list(range(seeds)), "quick": quick,
-                  "memory": memory, "noise": True, "dry_run_cut": dry_run_cut},
+                  "memory": memory, "noise": True, "dry_run_cut": dry_run_cut, "cut_oracle": cut_oracle,
+                  "generated": generated},
+        "pieces": _pieces(scenes) if generated else {},
+        "cut_oracles": {},
         "config": {"cell_config_path": str(cfg_path), "cell": cfg.model_dump(mode="json"),
                    "planners": pcfg.model_dump(mode="json")},
         "machine": machine_info(),
@@ -228,6 +248,8 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
             else:
                 rec = _one_run(cfg, cfg_path, scene, categories[scene], planner, seed, out, memory, run_job,
                                dry_run_cut)
+            if cut_oracle and scene not in doc["cut_oracles"]:
+                doc["cut_oracles"][scene] = _cut_oracle(cfg, pcfg, scene)
             doc["runs"].append(rec)
             doc["process"] = {"max_rss_mb": max_rss_mb(), "wall_s": round(time.perf_counter() - t_start, 1)}
             write_json(json_path, doc)
@@ -239,6 +261,40 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
         doc["process"] = {"max_rss_mb": max_rss_mb(), "wall_s": round(time.perf_counter() - t_start, 1)}
         write_json(json_path, doc)
     return doc
+
+
+def _pieces(scenes: list[str]) -> dict:
+    """The generator's description of each generated piece (family, lines), by reference."""
+    from sim.scenes.scrap import generate, parse_ref
+
+    out = {}
+    for ref in scenes:
+        key = parse_ref(ref)
+        if key is not None:
+            name, _, meta = generate(*key)
+            out[ref] = {"name": name, **meta}
+    return out
+
+
+_ARM: dict = {}
+
+
+def _cut_oracle(cfg: CellConfig, pcfg, scene_ref: str) -> dict:
+    """The cut oracle of one scene; an error is recorded, not raised (the bench goes on)."""
+    import numpy as np
+
+    from cellctl.bench.cut_oracle import oracle_cut
+    from cellctl.bench.oracle import twin_arm
+    from sim.scenes import load_scene
+
+    try:
+        scene = load_scene(scene_ref)
+        if "model" not in _ARM:  # the same arm for every scene: one twin opened for its model
+            _ARM["model"] = twin_arm(scene, cfg.twin)[0]
+        park = np.asarray(cfg.twin.home_q, dtype=np.float64)
+        return oracle_cut(scene, _ARM["model"], park, cfg.motion.collision, pcfg, park_q=park)
+    except Exception as e:  # noqa: BLE001 - the bench records it and goes on
+        return {"error": f"{type(e).__name__}: {e}"}
 
 
 def _one_run(cfg, cfg_path, scene, category, planner, seed, out: Path, memory: bool, run_job,
@@ -340,7 +396,16 @@ def cli_bench(args) -> int:
     if getattr(args, "oracle", False):
         return oracle_bench(args, Path(args.out) if args.out else default_out_dir())
     q = QUICK if args.quick else {}
-    scenes = parse_list(args.scenes, SCENE_NAMES, "scenes", q.get("scenes", SCENE_NAMES))
+    generated = getattr(args, "generated", None)
+    if generated is not None:
+        from sim.scenes.scrap import scrap_refs
+
+        if generated < 1 or args.scenes:
+            raise ValueError("--generated N takes N >= 1 pieces and no --scenes")
+        q = {"scenes": tuple(scrap_refs(generated, args.gen_seed)), "planners": ("gnbv",), "seeds": 1}
+        scenes = list(q["scenes"])
+    else:
+        scenes = parse_list(args.scenes, SCENE_NAMES, "scenes", q.get("scenes", SCENE_NAMES))
     planners = parse_list(args.planners, DEFAULT_PLANNERS, "planners", q.get("planners", DEFAULT_PLANNERS))
     seeds = args.seeds if args.seeds is not None else q.get("seeds", DEFAULT_SEEDS)
     if seeds < 1:
@@ -351,7 +416,9 @@ def cli_bench(args) -> int:
           f"{len(scenes) * len(planners) * seeds} runs -> {out}", file=sys.stderr)
     try:
         doc = run_bench(cfg, cfg_path, scenes, planners, seeds, out, memory=not args.no_memory, quick=args.quick,
-                        dry_run_cut=getattr(args, "dry_run_cut", False))
+                        dry_run_cut=getattr(args, "dry_run_cut", False),
+                        cut_oracle=generated is not None and not getattr(args, "no_cut_oracle", False),
+                        generated=None if generated is None else {"n": generated, "gen_seed": args.gen_seed})
     except KeyboardInterrupt:
         if (out / "bench.json").is_file():
             bench_report.write_report(bench_report.load_bench(out / "bench.json"), out)

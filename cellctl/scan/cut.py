@@ -7,11 +7,12 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from cellctl.scan.result import CutSummary, DryRun, GapRecord
+from cellctl.scan.result import CutSummary, DryRun, GapRecord, PaintCheck, UncutPaintSummary
 from drivers.interfaces import Arm, ArmAbilities, JointTrajectory
 from planners.clouds import Cloud
 from planners.config import CutPathConfig
-from planners.cutpath import CutPath, plan_cut_path, torch_kinematics
+from planners.cutpath import CutPath, Surface, plan_cut_path, torch_kinematics
+from planners.cutpath.paint_report import cut_against_paint, flame_path
 from planners.grid import OccupancyGrid
 from planners.motion.collision import CollisionChecker, CollisionConfig, RobotCollisionModel, TorchShape
 from planners.motion.kinematics import Kinematics
@@ -46,8 +47,9 @@ def torch_checker(arm_model, ccfg: CollisionConfig, cut: CutPathConfig,
 
 def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: OccupancyGrid, drawing: Cloud,
              surface: Cloud, viewpoint: np.ndarray,
-             park_q: np.ndarray | None = None) -> tuple[CutPath | None, CutSummary, Kinematics]:
-    """Cut path from the scan; a drawing that gives no path is reported, not raised."""
+             park_q: np.ndarray | None = None, cloud_voxel_m: float = 0.002) -> tuple[CutPath | None, CutSummary, Kinematics]:
+    """Cut path from the scan, checked against the paint it saw (``check_against_paint``; the clouds are
+    deduplicated at ``cloud_voxel_m``); a drawing that gives no path is reported, not raised."""
     m = arm.model
     t0 = time.perf_counter()
     kin = torch_kinematics(m.urdf_path, cut, joint_names=m.joint_names, flange_link=m.flange_link,
@@ -72,12 +74,62 @@ def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: Occupanc
     summary.length_m = round(float(path.length_m), 4)
     summary.warnings = list(path.notes) + [f"cut {i}: {msg}" for i, b in enumerate(path.branches) for msg in b.issues]
     summary.cut_fraction = round(float(path.cut_fraction), 4)
+    summary.cut_lengths_m = [round(b.length_m, 4) for b in path.branches if b.feasible]
     summary.drawing_length_m = round(float(path.drawing_length_m or 0.0), 4)
     summary.gaps = [GapRecord.model_validate(g.to_json_dict()) for g in path.gaps]
     if not path.branches:
         summary.warnings.append("nothing on the drawing can be cut: " + (
             "; ".join(sorted({f"{g.reason}: {g.detail}" for g in summary.gaps})) or "no drawing branch"))
+    check_against_paint(summary, path, kin, cut, drawing, surface, viewpoint, cloud_voxel_m)
     return path, summary, kin
+
+
+def check_against_paint(summary: CutSummary, path: CutPath, kin: Kinematics, cut: CutPathConfig, drawing: Cloud,
+                        surface: Cloud, viewpoint: np.ndarray | None, cloud_voxel_m: float) -> None:
+    """``summary.paint``: the planned flame path against the paint the scan saw, and a warning wherever
+    it and the cut's own figures disagree, the flame leaves the paint or paint is left uncut."""
+    if len(drawing) == 0:
+        return
+    surf = Surface(surface.xyz if len(surface) else drawing.xyz, surface.origin if len(surface) else drawing.origin,
+                   viewpoint, cut.normal_radius_m)
+    rep = cut_against_paint(path, kin, drawing.xyz, surf, cut, cloud_voxel_m)
+    summary.paint = PaintCheck(
+        cut_share=round(min(max(rep.cut_share, 0.0), 1.0), 4), line_length_m=round(rep.line_length_m, 4),
+        spray_width_mm=round(2e3 * rep.half_width_m, 1), uncut=[UncutPaintSummary(**u.to_json_dict()) for u in rep.uncut],
+        flame_off_paint_max_mm=rep.flame_off_paint_max_mm, flame_off_paint_m=rep.flame_off_paint_m,
+        tip_to_surface_min_mm=rep.tip_to_surface_min_mm, tip_to_surface_max_mm=rep.tip_to_surface_max_mm)
+    own, seen = summary.cut_fraction, summary.paint.cut_share
+    if abs(own - seen) > cut.share_disagreement:
+        summary.warnings.append(f"the cut's own line says {100 * own:.0f} % of the drawing will be cut, but the flame "
+                                f"passes over {100 * seen:.0f} % of the paint the scan saw: trust the paint")
+    if rep.flame_off_paint_m > 0:
+        summary.warnings.append(f"the lit flame leaves the paint for {1e3 * rep.flame_off_paint_m:.0f} mm (up to "
+                                f"{rep.flame_off_paint_max_mm:.0f} mm off it): it would cut unmarked metal")
+    missed = [u for u in rep.uncut if u.reason == "not followed"]
+    if missed:
+        summary.warnings.append(f"{1e3 * sum(u.length_m for u in missed):.0f} mm of paint lies off every cut's line "
+                                f"({len(missed)} piece{'s' if len(missed) > 1 else ''}, the largest near "
+                                f"{', '.join(f'{v:.3f}' for v in missed[0].centre)} m)")
+
+
+def true_accuracy(path: CutPath, kin: Kinematics, cut: CutPathConfig, polylines: list[np.ndarray],
+                  painted: np.ndarray, metal=None) -> dict:
+    """The cut against the twin's truth: the flame spot at every lit sample of the planned motion against
+    the true centerline (``planners.metrics.cut_accuracy``), the poses alone beside it, and the tip's
+    distance from the true surface (``metal``: a trimesh of the piece)."""
+    from planners.cutpath.paint_report import lit_flames
+    from planners.metrics import cut_accuracy
+
+    flames = lit_flames(path, kin, cut.standoff_m)
+    acc = cut_accuracy(polylines, [f.spots for f in flames], painted=painted)
+    poses = cut_accuracy(polylines, [b.points for b in path.branches if b.feasible], painted=painted)
+    acc["pose_to_line_max_mm"] = poses["path_to_line_max_mm"]
+    if metal is not None and flames:
+        from sim.scenes.paint import closest_points
+
+        d = closest_points(metal, np.vstack([f.tips for f in flames]))[1]
+        acc["tip_to_metal_min_mm"], acc["tip_to_metal_max_mm"] = round(1e3 * float(d.min()), 2), round(1e3 * float(d.max()), 2)
+    return acc
 
 
 def clearing_targets(path: CutPath | None, most: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -103,14 +155,18 @@ def write_trajectory(path: CutPath, file) -> None:
     np.savez_compressed(file, **arrays)
 
 
-def dry_run_cut(arm: Arm, kin: Kinematics, path: CutPath, abilities: ArmAbilities | None = None) -> DryRun:
+def dry_run_cut(arm: Arm, kin: Kinematics, path: CutPath, abilities: ArmAbilities | None = None, *,
+                paint: np.ndarray | None = None, standoff_m: float = 0.0,
+                line: list[np.ndarray] | None = None) -> DryRun:
     """Run every feasible branch (approach, cut, retract) on the arm, torch off, and measure the
-    torch tip against the plan: at the same instant, and as distance from the planned path. The
-    contacts come from a ``ContactLog`` arm, the tip's tracking from a ``MotionLog`` arm (``abilities``:
-    the arm's, as checked where it was wired; default: checked now)."""
+    torch tip against the plan: at the same instant, and as distance from the planned path; and the
+    flame spot (``standoff_m`` ahead of the tip) of the executed cut against the ``paint`` the scan
+    saw and, in the twin, the true centerline ``line``. The contacts come from a ``ContactLog`` arm,
+    the tip's tracking from a ``MotionLog`` arm (``abilities``: the arm's, as checked where it was
+    wired; default: checked now)."""
     abilities = abilities if abilities is not None else ArmAbilities.of(arm)
     contact_log, motion_log = abilities.contacts, abilities.motion_log
-    planned_tip, errors_t, errors_path, contacts, moved = [], [], [], [], 0
+    planned_tip, errors_t, errors_path, contacts, moved, spots = [], [], [], [], 0, []
     for i, b in enumerate(path.branches):
         if not b.feasible:
             continue
@@ -137,7 +193,14 @@ def dry_run_cut(arm: Arm, kin: Kinematics, path: CutPath, abilities: ArmAbilitie
             d, _ = cKDTree(dense).query(tip_act)
             errors_path.append(d)
             planned_tip.append(dense)
+            spots.append(flame_path(kin, actual[ok], standoff_m).spots)
     run = DryRun(motions=moved, contacts=len(contacts), contact_log=contacts)
+    if spots and paint is not None and len(paint):
+        run.flame_off_paint_max_mm = round(1e3 * float(cKDTree(paint).query(np.vstack(spots))[0].max()), 2)
+    if spots and line:
+        from planners.metrics import dense_polylines
+
+        run.flame_to_line_max_mm = round(1e3 * float(cKDTree(dense_polylines(line, 0.001)).query(np.vstack(spots))[0].max()), 2)
     if errors_t:
         e_t, e_p = np.concatenate(errors_t), np.concatenate(errors_path)
         run.tip_error_max_mm, run.tip_error_median_mm = round(1e3 * e_t.max(), 3), round(1e3 * np.median(e_t), 3)

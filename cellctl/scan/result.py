@@ -37,6 +37,9 @@ class DryRunSummary(Summary):
     tip_error_median_mm: float | None = None
     path_error_max_mm: float | None = None
     path_error_median_mm: float | None = None
+    flame_off_paint_max_mm: float | None = Field(None, ge=0, description="the executed cut's flame spot to the "
+                                                                         "nearest paint the scan saw, largest")
+    flame_to_line_max_mm: float | None = Field(None, ge=0, description="the same to the true line (twin only)")
 
 
 class CutGap(Summary):
@@ -52,7 +55,8 @@ class CutGap(Summary):
 
 
 class CutAccuracy(Summary):
-    """The cuts against the painted line's true centerline (twin only)."""
+    """The cuts against the painted line's true centerline (twin only): the flame spot at every sample
+    of the planned cut motion, lit (``pose_to_line_max_mm``: at the planned poses only)."""
 
     strokes: int = Field(ge=0, description="strokes of the true drawing")
     cuts: int = Field(ge=0)
@@ -62,6 +66,36 @@ class CutAccuracy(Summary):
     path_to_line_max_mm: float | None = Field(None, ge=0)
     line_to_path_mean_mm: float | None = Field(None, ge=0)
     line_to_path_max_mm: float | None = Field(None, ge=0, description="includes the uncut gaps")
+    pose_to_line_max_mm: float | None = Field(None, ge=0, description="the planned cut poses only")
+    tip_to_metal_min_mm: float | None = Field(None, ge=0, description="the torch tip to the true surface, lit")
+    tip_to_metal_max_mm: float | None = Field(None, ge=0)
+
+
+class UncutPaintSummary(Summary):
+    """A piece of paint no cut passes over: where, how much line it holds, and why."""
+
+    centre: list[float] = Field(min_length=3, max_length=3, description="a paint point in it, robot base, m")
+    length_m: float = Field(ge=0, description="its painted area over the spray width")
+    reason: str = Field(max_length=64, description="the reason of the plan's gap there (out of reach, joint limits, "
+                                                   "collision, ...), or 'not followed': no cut's line goes there")
+    detail: str = Field("", max_length=500)
+
+
+class PaintCheck(Summary):
+    """The cut against what the cell saw (never against its own line): the painted area under the flame's
+    path, computed at every sample of the planned motion with the flame lit."""
+
+    cut_share: float = Field(ge=0, le=1, description="share of the painted area within half the spray width plus "
+                                                     "the line tolerance of a runnable cut's flame path")
+    line_length_m: float = Field(ge=0, description="the line's length as the paint shows it: area over spray width")
+    spray_width_mm: float = Field(ge=0, description="as measured across the paint")
+    uncut: list[UncutPaintSummary] = Field(default_factory=list, max_length=100, description="longest first")
+    flame_off_paint_max_mm: float | None = Field(None, ge=0, description="the flame spot's largest distance from "
+                                                                         "any paint, over every lit sample")
+    flame_off_paint_m: float = Field(0.0, ge=0, description="flame travel off the paint by more than the tolerance")
+    tip_to_surface_min_mm: float | None = Field(None, ge=0, description="the torch tip's clearance from the scanned "
+                                                                        "surface while lit, least")
+    tip_to_surface_max_mm: float | None = Field(None, ge=0)
 
 
 class CutPathSummary(Summary):
@@ -82,6 +116,9 @@ class CutPathSummary(Summary):
     gaps: list[CutGap] = Field(default_factory=list, max_length=200, description="what is left uncut, and why")
     warnings: list[Line] = Field(default_factory=list, max_length=50, description="what the operator should know")
     clearing_views: int = Field(0, ge=0, description="views taken after the scan to see the torch's way")
+    cut_lengths_m: list[float] = Field(default_factory=list, max_length=200, description="each runnable cut's "
+                                       "length, in cutting order")
+    paint: PaintCheck | None = Field(None, description="the cut against the paint the cell saw")
     accuracy: CutAccuracy | None = None
 
 

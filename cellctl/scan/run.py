@@ -14,7 +14,7 @@ import numpy as np
 
 from cellctl.config import CellConfig
 from cellctl.scan.artifacts import new_run_dir, save_png, write_json, write_ply
-from cellctl.scan.cut import clearing_targets, dry_run_cut, plan_cut, twin_torch, write_trajectory
+from cellctl.scan.cut import clearing_targets, dry_run_cut, plan_cut, true_accuracy, twin_torch, write_trajectory
 from cellctl.scan.devices import open_devices
 from cellctl.scan.job import ScanJob
 from cellctl.scan.plots import coverage_figure, cut_figure
@@ -23,7 +23,6 @@ from cellctl.scan.result import ResultFile, ScanResult, StepRecord
 from cellctl.scan.spec import Hooks, JobSpec
 from drivers.interfaces import Arm
 from planners.config import PlannersConfig, load_planners_config
-from planners.metrics import cut_accuracy
 from sim.config import TwinConfig
 from sim.scenes import Scene, load_scene
 
@@ -32,18 +31,20 @@ def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, arm: Arm, run_dir: Path, rec
                result: ScanResult, dry_run: bool, progress: bool, truth: tuple | None = None) -> None:
     """planning-cut: the drawing becomes cut_path.json/.csv and cut_trajectory.npz; optionally the
     arm runs it (torch off) and the tip's tracking is measured. ``truth``: (the painted line's true
-    centerline polylines, samples of the painted surface) of the twin's scene, to measure the cuts."""
+    centerline polylines, samples of the painted surface, the piece's mesh) of the twin's scene, to
+    measure the cuts."""
     viewpoint = np.array(result.viewpoints[0]) if result.viewpoints else None
     job.for_the_cut(result, "the move to park", lambda: job.go_park(result))  # the cut starts clear above the cell
+    voxel = pcfg.grid.surface_voxel_m
     path, summary, kin = plan_cut(arm, cfg.motion.collision, pcfg.cutpath, job.grid, job.drawing, job.surface,
-                                  viewpoint, park_q=job.motion.park_q)
+                                  viewpoint, park_q=job.motion.park_q, cloud_voxel_m=voxel)
     targets = clearing_targets(path, pcfg.cutpath.max_clearing_views)
     if targets and not job.cancelled():  # the torch's way is unseen: look, then plan again
         views = job.for_the_cut(result, "the views of the torch's way", lambda: job.look_along(targets, result)) or 0
         job.for_the_cut(result, "the move to park", lambda: job.go_park(result))
         if views:
             path, summary, kin = plan_cut(arm, cfg.motion.collision, pcfg.cutpath, job.grid, job.drawing,
-                                          job.surface, viewpoint, park_q=job.motion.park_q)
+                                          job.surface, viewpoint, park_q=job.motion.park_q, cloud_voxel_m=voxel)
         summary.clearing_views = views
     if path is not None:
         path.write(run_dir)
@@ -51,10 +52,10 @@ def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, arm: Arm, run_dir: Path, rec
         recorder.log_cut(len(result.records), path)
         _cut_picture(run_dir, job, path, summary, truth)
         if dry_run:
-            summary.dry_run = dry_run_cut(arm, kin, path, job.abilities)
+            summary.dry_run = dry_run_cut(arm, kin, path, job.abilities, paint=job.drawing.xyz,
+                                          standoff_m=pcfg.cutpath.standoff_m, line=truth[0] if truth else None)
         if truth:
-            summary.accuracy = cut_accuracy(truth[0], [b.points for b in path.branches if b.feasible],
-                                            painted=truth[1])
+            summary.accuracy = true_accuracy(path, kin, pcfg.cutpath, truth[0], truth[1], truth[2])
     result.cut = summary
     if progress:
         print(f"cut path: {100 * summary.cut_fraction:.1f} % of the {summary.drawing_length_m:.3f} m drawing "
@@ -69,11 +70,17 @@ def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, arm: Arm, run_dir: Path, rec
                       file=sys.stderr, flush=True)
         for msg in summary.warnings:
             print(f"  warning: {msg}", file=sys.stderr, flush=True)
+        if summary.paint:
+            p = summary.paint
+            print(f"  against the paint: the flame passes over {100 * p.cut_share:.1f} % of the paint (a "
+                  f"{1000 * p.line_length_m:.0f} mm line {p.spray_width_mm:.0f} mm wide), at most "
+                  f"{p.flame_off_paint_max_mm} mm off it", file=sys.stderr, flush=True)
         if summary.accuracy:
             a = summary.accuracy
-            print(f"  against the true line: {100 * a.cut_coverage:.1f} % within 5 mm of a cut; path to line mean "
-                  f"{a.path_to_line_mean_mm} mm, max {a.path_to_line_max_mm} mm; {a.cuts} cuts for "
-                  f"{a.strokes} strokes", file=sys.stderr, flush=True)
+            print(f"  against the true line: {100 * a.cut_coverage:.1f} % within 5 mm of a cut; flame to line mean "
+                  f"{a.path_to_line_mean_mm} mm, max {a.path_to_line_max_mm} mm over the whole lit motion "
+                  f"({a.pose_to_line_max_mm} mm at the poses); tip {a.tip_to_metal_min_mm}-{a.tip_to_metal_max_mm} mm "
+                  f"off the metal; {a.cuts} cuts for {a.strokes} strokes", file=sys.stderr, flush=True)
 
 
 def _cut_picture(run_dir: Path, job: ScanJob, path, summary, truth: tuple | None) -> None:
@@ -167,7 +174,8 @@ def _run_scan(spec: JobSpec, hooks: Hooks) -> tuple[ScanResult, Path]:
                 if spec.cut and result.error is None and not job.cancelled() and len(job.drawing):
                     if hooks.on_phase:
                         hooks.on_phase("planning-cut")
-                    truth = (scene.drawing_polylines, scene.gt_points) if dev.twin is not None else None
+                    truth = ((scene.drawing_polylines, scene.gt_points, scene.full_mesh) if dev.twin is not None
+                             else None)
                     _cut_phase(job, pcfg, cfg, dev.arm, run_dir, recorder, result, spec.dry_run_cut, hooks.progress,
                                truth)
         finally:  # what the scan saw is kept, also when the cut phase or the twin failed afterwards

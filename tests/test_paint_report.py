@@ -1,0 +1,140 @@
+"""The cut measured against the paint the cell saw (planners.cutpath.paint_report), the flame along the
+whole motion, and the generated-pieces report (cellctl.bench.generated)."""
+
+import numpy as np
+import pytest
+
+from cellctl.bench.generated import FRAGMENT_M, overall, piece_rows, section
+from planners.cutpath.model import Gap
+from planners.cutpath.paint_report import NOT_IN_CUT, FlamePath, flame_path, paint_report
+
+VOXEL = 0.002
+HALF = 0.01  # a 20 mm spray
+
+
+def _band(polyline: np.ndarray, half: float = HALF, voxel: float = VOXEL) -> np.ndarray:
+    """The paint of a line sprayed on the plane z = 0: every voxel centre within ``half`` of the polyline."""
+    lo, hi = polyline[:, :2].min(axis=0) - half - voxel, polyline[:, :2].max(axis=0) + half + voxel
+    g = np.stack(np.meshgrid(*(np.arange(a, b, voxel) for a, b in zip(lo, hi)), indexing="ij"), -1).reshape(-1, 2)
+    a, b = polyline[:-1, :2], polyline[1:, :2]
+    ab = b - a
+    t = np.clip(np.einsum("nkj,kj->nk", g[:, None] - a[None], ab) / np.einsum("kj,kj->k", ab, ab), 0, 1)
+    d = np.linalg.norm(g[:, None] - (a[None] + t[..., None] * ab[None]), axis=2).min(axis=1)
+    pts = g[d <= half]
+    return np.column_stack([pts, np.zeros(len(pts))])
+
+
+def _flame(spots: np.ndarray, standoff: float = 0.01) -> FlamePath:
+    axes = np.tile([0.0, 0.0, -1.0], (len(spots), 1))
+    return FlamePath(spots - standoff * axes, axes, spots)
+
+
+def _line(a, b, step=0.0005):
+    n = int(np.linalg.norm(np.subtract(b, a)) / step) + 1
+    return np.linspace(a, b, n)
+
+
+def _report(paint, flames, gaps=None):
+    normals = np.tile([0.0, 0.0, 1.0], (len(paint), 1))
+    return paint_report(paint, normals, VOXEL, HALF, 0.005, flames, paint, gaps)
+
+
+def test_a_cut_along_the_whole_line_covers_its_paint_and_measures_its_length():
+    line = np.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]])
+    paint = _band(line)
+    rep = _report(paint, [_flame(_line(line[0], line[1]))])
+    assert rep.cut_share >= 0.99 and rep.uncut == []
+    assert rep.line_length_m == pytest.approx(0.3, rel=0.1)
+    assert rep.flame_off_paint_max_mm <= VOXEL * 1e3 and rep.flame_off_paint_m == 0.0  # within a cell of a paint point
+    assert rep.tip_to_surface_min_mm == pytest.approx(10.0, abs=0.5)
+
+
+def test_paint_past_a_cut_s_end_is_uncut_beyond_the_tolerance_and_a_gap_names_why():
+    line = np.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]])
+    paint = _band(line)
+    rep = _report(paint, [_flame(_line([0.0, 0.0, 0.0], [0.15, 0.0, 0.0]))])
+    # half the line's paint, plus the tolerance past the cut's end (not half a spray width more)
+    assert rep.cut_share == pytest.approx((0.15 + 0.005 + HALF) / (0.3 + 2 * HALF), abs=0.04)
+    assert len(rep.uncut) == 1 and rep.uncut[0].reason == NOT_IN_CUT
+    assert rep.uncut[0].length_m == pytest.approx(0.14, rel=0.15)
+    gap = Gap(0, np.array([0.15, 0, 0]), np.array([0.3, 0, 0]), 0.15, "collision", "the piece is in the way",
+              _line([0.16, 0, 0], [0.3, 0, 0], 0.005))
+    rep = _report(paint, [_flame(_line([0.0, 0.0, 0.0], [0.15, 0.0, 0.0]))], [gap])
+    assert rep.uncut[0].reason == "collision" and rep.uncut[0].detail == "the piece is in the way"
+
+
+def test_a_chord_across_a_sharp_tip_leaves_its_paint_uncut():
+    """A zigzag's 20-degree tip: the arms' paint near the tip is beside a chord, farther out it is not."""
+    half_angle = np.radians(10)
+    tip = np.array([0.2, 0.0, 0.0])
+    arm = 0.15 * np.array([-np.cos(half_angle), np.sin(half_angle), 0])
+    vee = np.array([tip + arm, tip, tip + arm * [1, -1, 1]])
+    paint = _band(vee)
+    whole = _report(paint, [_flame(np.vstack([_line(vee[0], vee[1]), _line(vee[1], vee[2])]))])
+    assert whole.cut_share >= 0.98
+    # the cut turns back 8 cm before the tip, where the arms are 28 mm apart
+    turn = tip + 0.08 * np.array([-1, 0, 0])
+    short = _report(paint, [_flame(np.vstack([_line(vee[0], turn), _line(turn, vee[2])]))])
+    assert short.cut_share < whole.cut_share - 0.05
+    assert short.uncut and short.uncut[0].reason == NOT_IN_CUT
+
+
+def test_a_flame_that_swings_off_the_line_is_measured_off_the_paint():
+    line = np.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]])
+    paint = _band(line)
+    swing = np.vstack([_line([0.0, 0.0, 0.0], [0.1, 0.0, 0.0]), _line([0.1, 0.0, 0.0], [0.1, 0.045, 0.0]),
+                       _line([0.1, 0.045, 0.0], [0.1, 0.0, 0.0]), _line([0.1, 0.0, 0.0], [0.3, 0.0, 0.0])])
+    rep = _report(paint, [_flame(swing)])
+    assert rep.flame_off_paint_max_mm == pytest.approx(35.0, abs=1.5)
+    assert rep.flame_off_paint_m == pytest.approx(2 * 0.03, abs=0.006)
+
+
+def test_no_paint_is_an_error():
+    with pytest.raises(ValueError, match="no paint"):
+        paint_report(np.zeros((0, 3)), np.zeros((0, 3)), VOXEL, HALF, 0.005, [])
+
+
+def test_the_flame_spot_is_the_standoff_ahead_of_the_torch_tip():
+    from configs.panda import PANDA_URDF
+    from planners.cutpath import torch_kinematics
+    from planners.motion.limits import PANDA_Q_READY
+
+    kin = torch_kinematics(str(PANDA_URDF))
+    Q = PANDA_Q_READY + np.linspace(0.0, 0.3, 5)[:, None]
+    f = flame_path(kin, Q, 0.01)
+    for k, q in enumerate(Q):
+        T = kin.fk(q)
+        assert np.allclose(f.tips[k], T[:3, 3]) and np.allclose(f.spots[k], T[:3, 3] + 0.01 * T[:3, 2])
+    assert flame_path(kin, np.zeros((0, 7)), 0.01).spots.shape == (0, 3)
+
+
+def _doc():
+    def run(ref, cov, share, own, flame, tips, lengths, err=None):
+        return {"scene": ref, "seed": 0, "error": err, "coverage": {"percent": 99.0},
+                "cut": None if err else {"fraction": own, "cuts": len(lengths), "cut_lengths_m": lengths,
+                                         "planning_s": 1.0, "uncut_m_by_reason": {"collision": 0.02},
+                                         "paint": {"cut_share": share},
+                                         "accuracy": {"cut_coverage": cov, "path_to_line_max_mm": flame,
+                                                      "pose_to_line_max_mm": 2.0, "tip_to_metal_min_mm": tips[0],
+                                                      "tip_to_metal_max_mm": tips[1]}}}
+    return {"bench": {"generated": {"n": 3, "gen_seed": 4}},
+            "config": {"planners": {"cutpath": {"standoff_m": 0.01}}},
+            "pieces": {"scrap:4:0": {"family": "plate", "lines": ["zigzag"]}},
+            "cut_oracles": {"scrap:4:0": {"cut_coverage": 0.9}, "scrap:4:1": {"cut_coverage": 0.8},
+                            "scrap:4:2": {"error": "ValueError: x"}},
+            "runs": [run("scrap:4:0", 0.81, 0.83, 1.0, 14.0, (6.0, 22.0), [0.3, 0.01]),
+                     run("scrap:4:1", 0.8, 0.79, 0.8, 3.0, (9.0, 11.0), [0.5]),
+                     run("scrap:4:2", None, None, None, None, None, [], err="boom")]}
+
+
+def test_the_generated_report_sets_the_cell_beside_the_oracle_and_the_truth():
+    rows = piece_rows(_doc())
+    assert rows[0]["ratio"] == pytest.approx(0.9) and rows[1]["ratio"] == pytest.approx(1.0)
+    assert rows[0]["fragments"] == 1 and 0.01 < FRAGMENT_M and rows[1]["fragments"] == 0
+    assert rows[0]["standoff_ok"] is False and rows[1]["standoff_ok"] is True
+    assert rows[0]["self_error_points"] == pytest.approx(2.0) and rows[2]["error"] == "boom"
+    o = overall(rows)
+    assert o["measured"] == 2 and o["errors"] == 1 and o["flame_within_5mm"] == 1 and o["standoff_ok"] == 1
+    assert o["self_within_3_points"] == 2 and o["pieces_with_fragments"] == 1
+    md = "\n".join(section(_doc()))
+    assert "| scrap:4:0 | plate | zigzag |" in md and "**error**: boom" in md
