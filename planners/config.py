@@ -269,6 +269,8 @@ class CutPathConfig(_Strict):
     line_tolerance_m: float = Field(0.005, gt=0, le=0.05, description="a flame spot this close to the painted line's "
                                     "centre is on it; paint farther than half the spray width plus this from every "
                                     "cut is left uncut")
+    flame_deviation_m: float = Field(0.002, gt=0, le=0.05, description="the lit flame may leave the line between "
+                                     "two torch poses by this much; a motion that swings it farther is no pivot")
     spray_width_m: float = Field(0.02, gt=0, le=0.1, description="the spray's width where no line can measure it")
     share_disagreement: float = Field(0.03, gt=0, le=1, description="the cut's own share and the paint's differing "
                                       "by more than this is a warning")

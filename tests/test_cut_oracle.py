@@ -35,3 +35,15 @@ def test_the_oracle_cuts_a_smooth_pipe_s_line_on_the_line_and_says_what_it_canno
     assert r["planning_s"] > 0 and all(v > 0 for v in r["uncut_m_by_reason"].values())
     # what it leaves is measured: the share its line claims and the truth agree
     assert abs(r["fraction"] - r["cut_coverage"]) < 0.05, r
+
+
+def test_the_lit_flame_stays_on_the_line_where_the_arm_used_to_flip_between_two_poses():
+    """sharp_cylinder's collar: the ladder once joined two rungs 1.4 rad apart as a 'pivot' and the flame
+    swept 17 mm off the line between two poses (measured over every sample of the planned motion)."""
+    cfg, path = load_cell_config(None)
+    pcfg = load_planners_config(path.parent / cfg.planners_config)
+    scene = load_scene("sharp_cylinder")
+    model, _ = twin_arm(scene, cfg.twin)
+    park = np.asarray(cfg.twin.home_q)
+    r = oracle_cut(scene, model, park, cfg.motion.collision, pcfg, park_q=park)
+    assert r["cut_coverage"] >= 0.97 and r["accuracy"]["path_to_line_max_mm"] <= 5.0, r

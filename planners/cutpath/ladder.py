@@ -208,6 +208,7 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
         """(R,R) bool: rung i of layer k joins rung j of layer k+1 (both usable, motion not blocked)."""
         return joinable[k] & ~blocked[k] & usable[k][:, None] & usable[k + 1][None, :]
 
+    flame = OnLine(kin, poses[:, :3, 3] + cfg.standoff_m * poses[:, :3, 2], cfg.standoff_m, cfg.flame_deviation_m)
     seg_free: set = set()  # spline segments found free, keyed by their four rungs
     motion_hits = np.zeros(max(N - 1, 0), dtype=np.int64)  # colliding motions found per layer pair
     while True:
@@ -226,13 +227,14 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
                 checked[lay, rung] = True
                 free[lay, rung] = res
                 hit_layers.update(lay[~res].tolist())
-        if not hit_layers and is_free is not None:
-            # the rungs are free: now the motion between them (joint-space steps of at most 1 degree);
-            # once it is clear segment by segment, the runs once more as wholes: the samples of a
-            # whole run (what the cut will be checked at) fall elsewhere than those of the segments
-            hit_edges = _check_motion(runs, chosen, Qf, tips, S, cfg, max_vel, is_free, seg_free)
+        if not hit_layers:
+            # the rungs are free: now the motion between them (joint-space steps of at most 1 degree),
+            # clear of the piece and with the flame on the line; once it is so segment by segment, the
+            # runs once more as wholes: the samples of a whole run (what the cut will be checked at)
+            # fall elsewhere than those of the segments
+            hit_edges = _check_motion(runs, chosen, Qf, tips, S, cfg, max_vel, is_free, seg_free, flame)
             if not hit_edges:
-                hit_edges = _check_motion(runs, chosen, Qf, tips, S, cfg, max_vel, is_free, set())
+                hit_edges = _check_motion(runs, chosen, Qf, tips, S, cfg, max_vel, is_free, set(), flame)
             for k, a, b in hit_edges:
                 blocked[k, a, b] = True
                 motion_hits[k] += 1
@@ -358,14 +360,39 @@ def every_degree(Q: np.ndarray) -> np.ndarray:
     return np.flatnonzero(keep)
 
 
+@dataclass
+class OnLine:
+    """The lit flame stays on the line between two poses: the flame spot (``standoff`` ahead of the tip
+    along the torch axis) at a sample of the motion from layer k to k+1 lies within ``deviation`` of
+    the segment between their paint points. A joint move that swings the torch (a change of arm
+    configuration passed off as a pivot) takes the flame off the line, through metal nobody marked."""
+
+    kin: Kinematics
+    points: np.ndarray  # (N,3) the paint point of each layer
+    standoff: float
+    deviation: float
+
+    def off(self, Q: np.ndarray, seg: np.ndarray) -> np.ndarray:
+        """(M,) bool: sample Q[m], on its way from layer seg[m] to seg[m]+1, has the flame off the line."""
+        if len(Q) == 0:
+            return np.zeros(0, dtype=bool)
+        T = self.kin.fk_batch(Q)
+        spot = T[:, :3, 3] + self.standoff * T[:, :3, 2]
+        a, b = self.points[seg], self.points[seg + 1]
+        ab = b - a
+        t = np.clip(np.einsum("ij,ij->i", spot - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-18), 0.0, 1.0)
+        return np.linalg.norm(spot - (a + t[:, None] * ab), axis=1) > self.deviation
+
+
 def _check_motion(runs, chosen, Qf: np.ndarray, tips: np.ndarray, S: int, cfg: CutPathConfig, max_vel,
-                  is_free: IsFree, known_free: set) -> list[tuple[int, int, int]]:
-    """Collision check of the motion the cut will execute along each chosen path (the timed
-    spline, a sample per degree of joint travel), in one call; returns the (layer, rung, next
-    rung) edges during which it collides. The spline between layers k and k+1 depends on rungs
-    k-1 .. k+2 only (their slopes and times), so a segment found free under those four rungs is
-    remembered in ``known_free`` and not checked again when the search changes the path elsewhere."""
-    samples, owner = [], []
+                  is_free: IsFree | None, known_free: set, flame: OnLine | None = None) -> list[tuple[int, int, int]]:
+    """Check of the motion the cut will execute along each chosen path (the timed spline, a sample
+    per degree of joint travel), in one call: clear of the piece (``is_free``) and the flame on the
+    line (``flame``); returns the (layer, rung, next rung) edges during which either fails. The
+    spline between layers k and k+1 depends on rungs k-1 .. k+2 only (their slopes and times), so a
+    segment found good under those four rungs is remembered in ``known_free`` and not checked again
+    when the search changes the path elsewhere."""
+    samples, owner, segs = [], [], []
     for (first, last), rungs in zip(runs, chosen):
         lay = np.arange(first, last + 1)
         q = Qf[lay, rungs]
@@ -378,10 +405,14 @@ def _check_motion(runs, chosen, Qf: np.ndarray, tips: np.ndarray, S: int, cfg: C
         keys = [(first + int(k), *padded[k:k + 4].tolist()) for k in range(len(rungs) - 1)]
         todo = np.array([keys[k] not in known_free for k in seg], dtype=bool)
         samples.append(Q[keep][todo])
+        segs.append(first + seg[todo])
         owner += [(keys[k], first + int(k), int(rungs[k]), int(rungs[k + 1])) for k in seg[todo]]
     if not owner:
         return []
-    ok = _free(is_free, np.vstack(samples))
+    Qs = np.vstack(samples)
+    ok = _free(is_free, Qs) if is_free is not None else np.ones(len(Qs), dtype=bool)
+    if flame is not None:
+        ok &= ~flame.off(Qs, np.concatenate(segs))
     bad = {(k, a, b) for (_, k, a, b), good in zip(owner, ok) if not good}
     hit = {o[0] for o, good in zip(owner, ok) if not good}
     known_free.update({o[0] for o in owner} - hit)
