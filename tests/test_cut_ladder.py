@@ -629,3 +629,29 @@ def test_a_bubble_of_paint_round_a_rim_is_one_stroke():
     g = drawing_graph(paint, 0.005, 0.03, 1, surface=paint)
     assert "junction" not in g.kinds and len(g.branches) == 1
     assert len(through_junctions(g)) == 1
+
+
+def test_a_collision_gap_says_what_blocks_the_torch(kin):
+    """The middle of a line lies under a slab the arm cannot pass (a test collision check that names
+    what it hits): the gap left there is a collision, its detail names the blocker, not 'out of reach'."""
+    from planners.cutpath.model import Branch
+
+    pts, normals, poses, times = straight([0.45, -0.10], [0.45, 0.10])
+
+    def blocked(Q):
+        tip = kin.fk_batch(Q)[:, :3, 3]
+        return np.abs(tip[:, 1]) < 0.03
+
+    asked = []
+
+    def explain(Q):
+        asked.append(len(Q))
+        return ["the arm against the test slab" if b else None for b in blocked(Q)]
+
+    path = CutPath([Branch(pts, normals, poses, np.full(len(pts), CFG.travel_speed_mps), "a", "b")],
+                   np.zeros((0, 3)), np.zeros((0, 3)), CFG.model_dump(mode="json"))
+    plan_cut(path, kin, PANDA_Q_READY, CFG, is_free=lambda Q: ~blocked(Q), explain=explain)
+    gaps = [g for g in path.gaps if g.length_m > 0]
+    assert len(gaps) == 1 and gaps[0].reason == COLLISION, gaps
+    assert "the arm against the test slab" in gaps[0].detail and asked and max(asked) <= 8, gaps[0].detail
+    assert 0.05 <= gaps[0].length_m <= 0.07 and len(path.branches) == 2

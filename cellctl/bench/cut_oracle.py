@@ -16,7 +16,7 @@ import time
 import numpy as np
 import trimesh
 
-from cellctl.scan.cut import torch_shape, true_accuracy
+from cellctl.scan.cut import torch_shape, true_accuracy, what_blocks
 from planners.clouds import Cloud
 from planners.config import PlannersConfig
 from planners.cutpath import plan_cut_path, torch_kinematics
@@ -55,7 +55,7 @@ def oracle_cut(scene, arm_model, q_start: np.ndarray, ccfg: CollisionConfig, pcf
     viewpoint = scene.initial_view_candidates[0][:3, 3] if len(scene.initial_view_candidates) else None
     t0 = time.perf_counter()
     path = plan_cut_path(paint, surface, kin, np.asarray(q_start, dtype=np.float64), cut, viewpoint=viewpoint,
-                         is_free=checker.free, max_vel=m.max_velocity, max_acc=m.max_acceleration,
+                         is_free=checker.free, explain=what_blocks(checker), max_vel=m.max_velocity, max_acc=m.max_acceleration,
                          max_jerk=m.max_jerk, park_q=park_q)
     planning = time.perf_counter() - t0
     gaps: dict[str, float] = {}

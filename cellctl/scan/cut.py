@@ -45,6 +45,23 @@ def torch_checker(arm_model, ccfg: CollisionConfig, cut: CutPathConfig,
     return checker, checker.set_scene_from_grid(grid)
 
 
+def what_blocks(checker: CollisionChecker, piece: str = "the piece"):
+    """``explain`` for the cut planner: what each configuration (M,dof) hits, in the operator's words."""
+    def label(c) -> str | None:
+        if c is None:
+            return None
+        who = "the camera" if c.part == "camera" else "the torch" if c.part == "torch" else "the arm"
+        if c.kind == "floor":
+            return f"{who} against the floor or table"
+        if c.kind == "static":
+            return f"{who} against {c.other}"
+        if c.kind == "scene":
+            return f"{who} against {piece}"
+        return "the arm against itself" if c.other not in ("camera", "torch") else f"the arm against {c.other}"
+
+    return lambda Q: [label(checker.check(q)) for q in np.asarray(Q).reshape(-1, checker.robot.kin.dof)]
+
+
 def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: OccupancyGrid, drawing: Cloud,
              surface: Cloud, viewpoint: np.ndarray,
              park_q: np.ndarray | None = None, cloud_voxel_m: float = 0.002) -> tuple[CutPath | None, CutSummary, Kinematics]:
@@ -58,7 +75,8 @@ def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: Occupanc
     try:
         checker, unseen = torch_checker(m, ccfg, cut, grid)
         path = plan_cut_path(drawing, surface, kin, arm.joint_positions(), cut, viewpoint=viewpoint,
-                             is_free=checker.free, unseen=unseen, cell_m=grid.voxel, max_vel=m.max_velocity,
+                             is_free=checker.free, unseen=unseen, cell_m=grid.voxel,
+                             explain=what_blocks(checker, "the scanned piece (or space not seen yet)"), max_vel=m.max_velocity,
                              max_acc=m.max_acceleration, max_jerk=m.max_jerk, park_q=park_q)
     except ValueError as e:
         summary.error = str(e)

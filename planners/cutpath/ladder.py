@@ -29,6 +29,7 @@ from planners.motion.ik_batch import solve_axis_ik_batch, spread_seeds
 from planners.motion.kinematics import Kinematics
 
 IsFree = Callable[[np.ndarray], np.ndarray]
+Explain = Callable[[np.ndarray], list]
 NozzleFree = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 OUT_OF_REACH, JOINT_LIMITS, COLLISION = "out of reach", "joint limits", "collision"
@@ -46,6 +47,11 @@ MOTION_TRIES = 8
 #: dozen, from a random seed within 50; on t_piece and the basket 0.1 % more rungs were solved between
 #: 50 and 150 iterations, and those last iterations, for a few dozen creeping targets, cost a third
 IK_ITERATIONS = 60
+#: IK starts spread over the joint space for a pose none of the ladder's starts reached, before it is
+#: called out of reach: the ladder's few starts follow the arm's tracks and can all miss a solution
+REACH_SEEDS = 48
+#: layers of a gap whose colliding configurations are asked what they hit
+EXPLAINED_LAYERS = 6
 _WHY = {OUT_OF_REACH: "the torch pose is beyond the arm's reach at every tilt",
         JOINT_LIMITS: "in reach, but no configuration within the joint limits holds the torch there",
         COLLISION: "every configuration that holds the torch there collides with the scanned piece or the arm",
@@ -178,11 +184,13 @@ def solve_rungs(kin: Kinematics, branch_poses: list[np.ndarray], q_start: np.nda
 
 def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: np.ndarray, cfg: CutPathConfig,
                 is_free: IsFree | None, max_vel: np.ndarray, nozzle_free: NozzleFree | None = None,
-                rungs: Rungs | None = None) -> Ladder:
+                rungs: Rungs | None = None, explain: Explain | None = None) -> Ladder:
     """Runs and gaps along one branch's nominal torch poses (N,4,4) timed by ``times`` (N,).
     ``nozzle_free(tips, axes)``: whether the nozzle is clear of the metal at each tilt (``nozzle.py``);
     a tilt whose nozzle is not is no rung. ``rungs``: this branch's from ``solve_rungs`` (solved here
-    from ``q_start`` when None)."""
+    from ``q_start`` when None). ``explain(Q)``: what each colliding configuration hits (the floor,
+    the piece, the arm itself ...), for the gaps' details; a pose no IK start reached is tried from
+    ``REACH_SEEDS`` more before it is called out of reach."""
     N = len(poses)
     D = tilt_directions(cfg)  # (O,3)
     O, S, dof = len(D), cfg.ik_seeds, kin.dof
@@ -257,6 +265,9 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
     # reach (with its joint limits), within it the limits or the axis stop it
     lost = ~solved.any(axis=1)
     near_miss = np.zeros(N, dtype=bool)
+    found = _reach_anyway(kin, tips, axes, in_reach, lost, cfg)  # layer -> configurations another start found
+    for k in found:
+        lost[k] = False
     if lost.any():
         tries = Qf[lost].reshape(-1, dof)
         err = np.linalg.norm(kin.fk_batch(np.nan_to_num(tries))[:, :3, 3]
@@ -265,6 +276,9 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
     for k in range(N):  # a reason per layer, from whole-layer masks
         if usable[k].any():
             out.layer_reason.append("")
+        elif k in found:  # reachable from other starts: the ladder's tracks do not get there
+            out.layer_reason.append(COLLISION if is_free is not None and not _free(is_free, found[k]).any()
+                                    else SINGULAR)
         elif not in_reach[k].any() or (not solved[k].any() and not near_miss[k]):
             out.layer_reason.append(OUT_OF_REACH)
         elif solved[k].any():  # held there, but the arm, the torch or its nozzle touches
@@ -293,7 +307,50 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
         out.runs.append(Run(first, last, q, T, tilt[rungs].copy(),
                             pivot_times(tips[lay, o], q, cfg.travel_speed_mps, max_vel)))
     out.gaps = _gaps(N, runs, out.layer_reason)
+    if explain is not None:
+        for g in out.gaps:
+            if g.reason == COLLISION:
+                g.detail = _blockers(g, out.layer_reason, Qf, solved, valid, found, explain) or g.detail
     return out
+
+
+def _reach_anyway(kin: Kinematics, tips: np.ndarray, axes: np.ndarray, in_reach: np.ndarray, lost: np.ndarray,
+                  cfg: CutPathConfig) -> dict[int, np.ndarray]:
+    """For the layers none of the ladder's starts solved (at any tilt) but inside the reach sphere:
+    their normal-tilt pose from ``REACH_SEEDS`` starts spread over the joint space, one batch.
+    Returns layer -> the configurations found (within the joint limits and margin)."""
+    todo = np.flatnonzero(lost & in_reach[:, 0])
+    if len(todo) == 0:
+        return {}
+    seeds = spread_seeds(kin, 0.5 * (kin.lower + kin.upper), REACH_SEEDS, cfg.ik_margin_rad)
+    n = len(todo)
+    Q, ok = solve_axis_ik_batch(kin, np.repeat(tips[todo, 0], len(seeds), 0), np.repeat(axes[todo, 0], len(seeds), 0),
+                                np.tile(seeds, (n, 1)), margin=cfg.ik_margin_rad, max_iter=2 * IK_ITERATIONS)
+    Q, ok = Q.reshape(n, len(seeds), -1), ok.reshape(n, len(seeds))
+    return {int(k): Q[i][ok[i]] for i, k in enumerate(todo) if ok[i].any()}
+
+
+def _blockers(g: Gap, layer_reason: list[str], Qf: np.ndarray, solved: np.ndarray, valid: np.ndarray,
+              found: dict[int, np.ndarray], explain: Explain) -> str:
+    """What the configurations holding the torch in a collision gap hit, counted over a handful of its
+    layers: "every configuration ... collides: the piece (12), the floor (3); the nozzle touches the metal (4)"."""
+    lay = [k for k in g.uncut_layers if layer_reason[k] == COLLISION]
+    if not lay:
+        return ""
+    lay = lay[::max(1, len(lay) // EXPLAINED_LAYERS)][:EXPLAINED_LAYERS]
+    counts: dict[str, int] = {}
+    for k in lay:  # a handful of layers, each one batch
+        nozzle = solved[k] & ~valid[k]
+        if nozzle.any():
+            counts["the nozzle touches the metal"] = counts.get("the nozzle touches the metal", 0) + int(nozzle.sum())
+        Q = Qf[k][solved[k] & valid[k]] if (solved[k] & valid[k]).any() else found.get(k, np.zeros((0, Qf.shape[2])))
+        for what in explain(Q[:8]):
+            if what:
+                counts[what] = counts.get(what, 0) + 1
+    if not counts:
+        return ""
+    parts = ", ".join(f"{w} ({n})" for w, n in sorted(counts.items(), key=lambda kv: -kv[1]))
+    return f"every configuration that holds the torch there is blocked: {parts}, over {len(lay)} of its poses"
 
 
 def _joins(Qf: np.ndarray, rung_axis: np.ndarray, cfg: CutPathConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -217,10 +217,10 @@ def _cut_trajectory(b: Branch, dt: float) -> JointPath:
 
 def _runs_of(b: Branch, index: int, kin: Kinematics, q_here: np.ndarray, cfg: CutPathConfig,
              is_free: IsFree | None, max_vel: np.ndarray, nozzle_free=None,
-             rungs: Rungs | None = None) -> tuple[list[Branch], list[Gap]]:
+             rungs: Rungs | None = None, explain=None) -> tuple[list[Branch], list[Gap]]:
     """The ladder graph along one branch: its cuttable runs as branches of their own (joint
     solutions chosen, poses tilted as chosen) and its uncut gaps with their reasons."""
-    lad = plan_ladder(kin, b.poses, b.times, q_here, cfg, is_free, max_vel, nozzle_free, rungs)
+    lad = plan_ladder(kin, b.poses, b.times, q_here, cfg, is_free, max_vel, nozzle_free, rungs, explain)
     n = len(b)
     s = arc_length(b.points)
     runs = []
@@ -251,7 +251,7 @@ def _runs_of(b: Branch, index: int, kin: Kinematics, q_here: np.ndarray, cfg: Cu
 def plan_cut(path: CutPath, kin: Kinematics, q_start: np.ndarray, cfg: CutPathConfig | None = None, *,
              is_free: IsFree | None = None, max_vel: np.ndarray = PANDA_MAX_VELOCITY,
              max_acc: np.ndarray = PANDA_MAX_ACCELERATION, max_jerk: np.ndarray = PANDA_MAX_JERK,
-             park_q: np.ndarray | None = None, nozzle_free=None) -> CutPath:
+             park_q: np.ndarray | None = None, nozzle_free=None, explain=None) -> CutPath:
     """Joint motion for the drawing, in place (and returned). Each branch goes through the ladder
     graph (``ladder.py``: the torch within its tilt tolerances, batched IK, lazy collision checks,
     the cheapest continuous joint path) and becomes its maximal cuttable runs; ``path.branches``
@@ -268,6 +268,8 @@ def plan_cut(path: CutPath, kin: Kinematics, q_start: np.ndarray, cfg: CutPathCo
         park_q: a configuration clear above the cell: an air move that collides goes through it.
         nozzle_free: optional (tips (...,3), axes (...,3)) -> (...) bool: the nozzle is clear of the
             metal there (``nozzle.NozzleCheck`` on the scanned surface).
+        explain: optional (M,dof) -> M labels of what each configuration hits (None where nothing),
+            for the details of the gaps left for a collision.
 
     Raises:
         ValueError: malformed q_start or limits, q_start outside kin's limits, is_free returning
@@ -308,7 +310,7 @@ def plan_cut(path: CutPath, kin: Kinematics, q_start: np.ndarray, cfg: CutPathCo
             path.gaps.append(Gap(i, b.points[0].copy(), b.points[-1].copy(), 0.0, "too short",
                                  "a single torch pose is not a cut"))
             continue
-        runs, gaps = _runs_of(b, i, kin, q_here, cfg, is_free, lim["max_vel"], nozzle_free, r)
+        runs, gaps = _runs_of(b, i, kin, q_here, cfg, is_free, lim["max_vel"], nozzle_free, r, explain)
         path.gaps += gaps
         for rb in runs:
             _time_run(rb, kin, q_here, cfg, is_free, lim, park_q)
@@ -440,7 +442,7 @@ def _time_run(b: Branch, kin: Kinematics, q_here: np.ndarray, cfg: CutPathConfig
 def plan_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | None, kin: Kinematics,
                   q_start: np.ndarray, cfg: CutPathConfig | None = None, *, viewpoint: np.ndarray | None = None,
                   is_free: IsFree | None = None, unseen: np.ndarray | None = None, cell_m: float = 0.0,
-                  **limits) -> CutPath:
+                  explain=None, **limits) -> CutPath:
     """build_cut_path then plan_cut, the torch's working end (``torch.fine_length_m``) kept
     ``nozzle_margin_m`` off the surface cloud (the drawing's own points when there is no surface)
     and off the ``unseen`` cells (centres, side ``cell_m``) in front of it (``is_free`` checks the rest)."""
@@ -448,7 +450,7 @@ def plan_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Non
     surf = _surface(drawing, surface, viewpoint, cfg)
     path = build_cut_path(drawing, surf, cfg, viewpoint=viewpoint)
     near = _in_front(unseen, surf, path, cfg, cell_m)
-    return plan_cut(path, kin, q_start, cfg, is_free=is_free,
+    return plan_cut(path, kin, q_start, cfg, is_free=is_free, explain=explain,
                     nozzle_free=NozzleCheck(surf.tree, cfg.torch, cfg.nozzle_margin_m, near, cell_m), **limits)
 
 
