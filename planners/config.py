@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
-from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -231,6 +231,9 @@ class CutPathConfig(_Strict):
     """From the drawing cloud to torch poses and the joint motion that follows them."""
 
     # drawing -> branches
+    line_from: Literal["outline", "skeleton"] = Field(
+        "outline", description="the line from the paint's outline moved inward by half the spray width (keeps "
+        "sharp tips), or the voxel skeleton of the whole paint (cuts chords across them)")
     voxel_m: float = Field(0.005, ge=0.001, le=0.05, description="skeleton voxel; the 2 mm surface cloud allows 5 mm")
     closing_iterations: int = Field(1, ge=0, le=5, description="close gaps of up to 2x this many voxels")
     min_branch_m: float = Field(0.03, ge=0, le=1.0, description="spurs shorter than this are dropped")

@@ -149,8 +149,13 @@ def painted_over(loop: np.ndarray, paint: np.ndarray, spacing_m: float) -> bool:
     return span < 2.0 * band_half_width(p, paint, spacing_m, closed=True)
 
 
+#: center_on_paint(single_band=True): the largest move, in half widths
+SINGLE_BAND_MOVE = 0.25
+
+
 def center_on_paint(points: np.ndarray, paint: np.ndarray, spacing_m: float, closed: bool = False,
-                    reach_m: float = 0.03, max_turn_deg: float = 20.0, normals: np.ndarray | None = None) -> np.ndarray:
+                    reach_m: float = 0.03, max_turn_deg: float = 20.0, normals: np.ndarray | None = None,
+                    single_band: bool = False) -> np.ndarray:
     """Each point moved across the line to the middle of the paint beside it: the centroid of the
     paint in a slab one spacing thick across the line, within the band's half width (the median
     over the points of how far the paint reaches, at most ``reach_m``), the move across the line
@@ -158,7 +163,11 @@ def center_on_paint(points: np.ndarray, paint: np.ndarray, spacing_m: float, clo
     are not (up to half a voxel off, more where thinning leans). Points where the line turns by
     more than ``max_turn_deg`` within the band stay: a corner's slab holds both of its sides. With
     the surface ``normals`` (K,3) the move stays in the surface, and paint off it by more than a
-    third of the half width (the far face of a thin plate the line wraps over) is not counted."""
+    third of the half width (the far face of a thin plate the line wraps over) is not counted. With
+    ``single_band``, points whose paint goes on beyond the band (another stretch of the line's paint
+    merged with it: a sharp tip) stay too: its centroid lies between the two stretches; and none moves
+    further than ``SINGLE_BAND_MOVE`` of the half width (a line from the outline is centred already, up
+    to the outline's own noise)."""
     p = _checks.points(points, "points", 1)
     paint = np.asarray(paint, dtype=np.float64).reshape(-1, 3)
     if len(p) < 3 or len(paint) < 10:
@@ -185,6 +194,11 @@ def center_on_paint(points: np.ndarray, paint: np.ndarray, spacing_m: float, clo
     a, b = np.clip(np.arange(len(p)) - k, 0, len(p) - 1), np.clip(np.arange(len(p)) + k, 0, len(p) - 1)
     straight = np.einsum("kj,kj->k", t[a], t[b]) >= np.cos(np.radians(max_turn_deg))
     move = straight & (count >= 5)
+    if single_band:
+        merged = np.bincount(i[(r > half) & (r <= 2.0 * half)], minlength=len(p))
+        move &= merged < 3
+        size = np.linalg.norm(shift, axis=1)
+        shift *= np.minimum(1.0, SINGLE_BAND_MOVE * half / np.maximum(size, 1e-12))[:, None]
     out = p.copy()
     out[move] += shift[move]
     return out
@@ -381,6 +395,7 @@ class Surface:
 
     def __init__(self, xyz: np.ndarray, origin: np.ndarray | None, viewpoint: np.ndarray | None,
                  radius_m: float, name: str = "surface") -> None:
+        self.name = name
         self.xyz = _checks.points(xyz, f"{name}.xyz", 3)
         self.radius = _checks.positive(radius_m, "normal_radius_m")
         if origin is None:

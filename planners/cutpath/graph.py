@@ -8,7 +8,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components, depth_first_order, dijkstra
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components, depth_first_order, dijkstra, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from planners.cutpath import _checks
@@ -399,6 +400,121 @@ def drawing_graph(xyz: np.ndarray, voxel_m: float = 0.005, min_branch_m: float =
     branches = [p for p, _, _ in b.branches.values()]
     ends = [(new_id[a], new_id[c]) for _, a, c in b.branches.values()]
     return DrawingGraph(nodes, [b.kind[k] for k in keys], branches, ends, voxel)
+
+
+def curve_graph(points: np.ndarray, cell_m: float = 0.003, link_m: float = 0.008,
+                min_branch_m: float = 0.03, paint: cKDTree | None = None, bridge_m: float = 0.0) -> DrawingGraph:
+    """The graph of a thin cloud of points on a curve (the paint's outline moved onto its line,
+    ``outline.py``), not of a band: each point moved to the mean of its neighbours within ``cell_m``
+    (the rows the band's two sides put on the line merge), one kept per ``cell_m`` cell, joined by their minimum spanning tree within ``link_m`` (a curve's
+    neighbours are its nearest points, so the tree follows it into a sharp tip where a voxel skeleton
+    of the band would cut the tip off), then traced, and its spurs pruned, as the skeleton's are.
+    Where strokes cross or meet the outline leaves a hole (the paint there is far from every side):
+    two free ends up to ``bridge_m`` apart that continue each other over ``paint`` (its k-d tree)
+    are joined across it (``_bridge``)."""
+    xyz = _checks.points(points, "points")
+    cell = _checks.positive(cell_m, "cell_m")
+    near = cKDTree(xyz).sparse_distance_matrix(cKDTree(xyz), cell, output_type="coo_matrix")
+    W = csr_matrix((np.ones(len(near.row)), (near.row, near.col)), shape=(len(xyz), len(xyz)))
+    W = W + csr_matrix((np.ones(len(xyz)), (np.arange(len(xyz)), np.arange(len(xyz)))), shape=W.shape)
+    xyz = (W @ xyz) / np.asarray(W.sum(axis=1))  # each point to the mean of its neighbours: the sides' rows merge
+    _, first = np.unique(np.floor(xyz / cell).astype(np.int64), axis=0, return_index=True)
+    P = xyz[np.sort(first)]
+    twins = cKDTree(P).query_pairs(0.5 * cell, output_type="ndarray")  # one row split by a cell border
+    P = np.delete(P, np.unique(twins.max(axis=1)), axis=0) if len(twins) else P
+    pairs = cKDTree(P).query_pairs(link_m, output_type="ndarray")
+    w = np.linalg.norm(P[pairs[:, 0]] - P[pairs[:, 1]], axis=1) + 1e-12
+    T = minimum_spanning_tree(coo_matrix((w, (pairs[:, 0], pairs[:, 1])), shape=(len(P), len(P))).tocsr())
+    b = _trace(((T + T.T) > 0).astype(np.float64).tocsr(), P)
+    _prune(b, min(min_branch_m, bridge_m) if paint is not None and bridge_m > 0 else min_branch_m)
+    if paint is not None and bridge_m > 0:
+        _bridge(b, paint, bridge_m, cell_m)
+        _prune(b, min_branch_m)
+    keys = list(b.pos)
+    new_id = {k: i for i, k in enumerate(keys)}
+    nodes = np.array([b.pos[k] for k in keys], dtype=np.float64).reshape(-1, 3)
+    return DrawingGraph(nodes, [b.kind[k] for k in keys], [p for p, _, _ in b.branches.values()],
+                        [(new_id[a], new_id[c]) for _, a, c in b.branches.values()], cell_m)
+
+
+#: two free ends continue each other when each one's direction points at the other within this angle
+BRIDGE_DEG = 35.0
+
+
+def _end_direction(p: np.ndarray, at_start: bool, back_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(the end point, its outward unit direction over the last ``back_m`` of the branch)."""
+    q = p[::-1] if at_start else p
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(q, axis=0), axis=1))])
+    j = int(np.searchsorted(s, s[-1] - back_m))
+    t = q[-1] - q[min(j, len(q) - 2)]
+    return q[-1], t / max(float(np.linalg.norm(t)), 1e-12)
+
+
+def _bridge(g: _Builder, paint: cKDTree, bridge_m: float, step_m: float) -> None:
+    """Join free ends that continue each other across a hole in the line points, nearest pairs
+    first: within ``bridge_m``, each end's direction pointing at the other within BRIDGE_DEG, and
+    the straight join over paint all the way (every ``step_m``)."""
+    ends = []  # (branch id, at_start, point, outward direction)
+    for i, (p, a, c) in g.branches.items():
+        if len(p) < 2 or a == c:
+            continue
+        for at_start, k in ((True, a), (False, c)):
+            if g.kind[k] == END:
+                ends.append((i, at_start, *_end_direction(p, at_start, 0.02)))
+    cos = np.cos(np.radians(BRIDGE_DEG))
+    pairs = []
+    for x in range(len(ends)):  # a few dozen ends
+        for y in range(x + 1, len(ends)):
+            (i, _, e, t), (j, _, f, u) = ends[x], ends[y]
+            d = f - e
+            dist = float(np.linalg.norm(d))
+            if not 0 < dist <= bridge_m or d @ t < cos * dist or -(d @ u) < cos * dist:
+                continue
+            if i == j and polyline_length(g.branches[i][0]) < 3.0 * bridge_m:  # a closed line: only a long one
+                continue
+            line = e + np.linspace(0.0, 1.0, max(int(dist / step_m), 1) + 1)[:, None] * d
+            if np.isfinite(paint.query(line, distance_upper_bound=1.5 * step_m)[0]).all():
+                pairs.append((dist, x, y))
+    used: set[int] = set()
+    joined: dict[int, int] = {}  # a branch merged into another lives on under that one's id
+
+    def alive(i: int) -> int:
+        while i in joined:
+            i = joined[i]
+        return i
+
+    for _, x, y in sorted(pairs):
+        if x in used or y in used:
+            continue
+        (i, si, e, _), (j, sj, f, _) = ends[x], ends[y]
+        i, j = alive(i), alive(j)
+        if i == j:  # the two ends of one branch: a closed line
+            p, a, c = g.branches.pop(i)
+            if g.kind.get(a) != END or g.kind.get(c) != END:
+                g.branches[i] = [p, a, c]
+                continue
+            for k in (a, c):
+                del g.pos[k], g.kind[k]
+            k = g.key(p[0], LOOP)
+            g.branch(np.vstack([p, p[:1]]), k, k)
+            used.update((x, y))
+            continue
+        p, a, c = g.branches[i]
+        q, a2, c2 = g.branches[j]
+        # orient so p ends at e and q starts at f
+        if np.allclose(p[0], e):
+            p, a, c = p[::-1], c, a
+        if np.allclose(q[-1], f):
+            q, a2, c2 = q[::-1], c2, a2
+        for k in (c, a2):
+            if g.kind.get(k) == END:
+                del g.pos[k], g.kind[k]
+        g.drop_branch(i)
+        g.drop_branch(j)
+        g.branch(np.vstack([p, q]), a, c2)
+        new = g._next_branch - 1
+        joined[i], joined[j] = new, new
+        used.update((x, y))
 
 
 def through_junctions(g: DrawingGraph, max_turn_deg: float = 45.0, near_m: float = 0.015, far_m: float = 0.04,

@@ -29,7 +29,8 @@ class Piece:
     line: np.ndarray  # (M,3) the cut's straight segment before it is put on the surface
 
 
-def _components(xyz: np.ndarray, link_m: float) -> list[np.ndarray]:
+def paint_parts(xyz: np.ndarray, link_m: float) -> list[np.ndarray]:
+    """Indices of the connected pieces of a cloud whose points are linked within ``link_m``."""
     pairs = cKDTree(xyz).query_pairs(link_m, output_type="ndarray")
     n = len(xyz)
     A = csr_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
@@ -51,7 +52,7 @@ def short_pieces(drawing: np.ndarray, branches: list[np.ndarray], surface: Surfa
     xyz = drawing[crowd >= max(3.0, 0.25 * float(np.median(crowd)))]
     if len(xyz) == 0:
         return [], 0
-    comps = _components(xyz, 1.5 * voxel_m)
+    comps = paint_parts(xyz, 1.5 * voxel_m)
     if branches:
         on_branch = cKDTree(np.vstack(branches))
         comps = [c for c in comps if not np.any(on_branch.query(xyz[c], distance_upper_bound=3.0 * voxel_m)[0] < np.inf)]

@@ -13,11 +13,12 @@ from planners.cutpath import _checks
 from planners.cutpath.config import CutPathConfig
 from planners.cutpath.geometry import (Surface, arc_length, band_half_width, center_on_paint, end_caps, on_surface,
                                       pivots, smooth_resample, torch_poses)
-from planners.cutpath.graph import END, JUNCTION, LOOP, drawing_graph, through_junctions
+from planners.cutpath.graph import END, JUNCTION, LOOP, curve_graph, drawing_graph, through_junctions
+from planners.cutpath.outline import line_core
 from planners.cutpath.ladder import (COLLISION, IK_ITERATIONS, RECONFIGURE, Rungs, cut_spline, every_degree,
                                      plan_ladder, reversal_permutation, solve_rungs, tilt_directions)
 from planners.cutpath.nozzle import NozzleCheck
-from planners.cutpath.pieces import short_pieces
+from planners.cutpath.pieces import paint_parts, short_pieces
 from planners.cutpath.model import OK, Branch, CutPath, Gap
 from planners.motion.ik_batch import solve_axis_ik_batch
 from planners.motion.kinematics import Kinematics
@@ -36,6 +37,8 @@ IsFree = Callable[[np.ndarray], np.ndarray]
 #: surface points in the normal that tells an unseen cell in front of the metal from one behind it:
 #: a sign, not a direction to aim the torch by, and thousands of cells
 IN_FRONT_NEIGHBOURS = 12
+#: the paint is one line (not broken) when one piece of it holds this share
+UNBROKEN_SHARE = 0.8
 
 
 def torch_kinematics(urdf_path: str, cfg: CutPathConfig | None = None, *,
@@ -81,7 +84,7 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
     cfg = cfg or CutPathConfig()
     d_xyz = _xyz_origin(drawing, "drawing")[0]
     surf = _surface(drawing, surface, viewpoint, cfg)
-    g = drawing_graph(d_xyz, cfg.voxel_m, cfg.min_branch_m, cfg.closing_iterations, surface=surf.xyz)
+    g, band, half = _line_graph(d_xyz, surf, cfg)
 
     counters = {JUNCTION: 0, END: 0, LOOP: 0}
     label = []
@@ -94,13 +97,16 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
         strokes.append(poly)
         held: list = []  # the corners: the torch pivots on them, resampling keeps them
         pts = smooth_resample(poly, cfg.spacing_m, cfg.smoothing_voxels * cfg.voxel_m, closed,
-                              corner_scale_m=cfg.corner_scale_m, corner_deg=cfg.corner_deg, paint=d_xyz, held=held)
-        pts = center_on_paint(pts, d_xyz, cfg.spacing_m, closed, normals=surf.normals(pts))
+                              corner_scale_m=cfg.corner_scale_m if half is None else min(cfg.corner_scale_m, 2 * half),
+                              corner_deg=cfg.corner_deg, paint=band, held=held)
+        pts = center_on_paint(pts, band, cfg.spacing_m, closed, normals=surf.normals(pts), single_band=half is not None)
         if not closed and END in (g.kinds[a], g.kinds[b]):  # along the centred line; what it adds centred too
             n = surf.normals(pts)
-            pts = end_caps(pts, d_xyz, surf.tree, band_half_width(pts, d_xyz, cfg.spacing_m, normals=n), cfg.spacing_m,
+            pts = end_caps(pts, d_xyz, surf.tree, band_half_width(pts, d_xyz, cfg.spacing_m, normals=n)
+                           if half is None else half, cfg.spacing_m,
                            start=g.kinds[a] == END, end=g.kinds[b] == END, normals=n)
-            pts = center_on_paint(pts, d_xyz, cfg.spacing_m, closed, normals=surf.normals(pts))
+            pts = center_on_paint(pts, band, cfg.spacing_m, closed, normals=surf.normals(pts),
+                                  single_band=half is not None)
         pts, normals = pivots(*on_surface(pts, surf, cfg.spacing_m, np.array(held)), cfg.pivot_step_deg)
         poses = torch_poses(pts, normals, cfg.standoff_m, closed)
         branches.append(Branch(pts, normals, poses, np.full(len(pts), cfg.travel_speed_mps), label[a], label[b], closed))
@@ -126,6 +132,31 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
     return path
 
 
+
+
+def _broken(d_xyz: np.ndarray, cfg: CutPathConfig) -> bool:
+    """A broken line (paint only where the spray met a bar, a dashed line): no one piece of paint holds
+    ``UNBROKEN_SHARE`` of it. Its pieces' outlines are mostly the bars' sides, not the line moved
+    aside; the skeleton and its pieces (``pieces.py``) cut it."""
+    parts = paint_parts(d_xyz, 2.0 * cfg.voxel_m)
+    return max((len(p) for p in parts), default=0) < UNBROKEN_SHARE * len(d_xyz)
+
+
+def _line_graph(d_xyz: np.ndarray, surf: Surface, cfg: CutPathConfig):
+    """(the drawing's graph, the paint its corners are fitted to, the band's half width or None): from
+    the paint's outline moved onto its line (``outline.py``: sharp tips kept, no chord through merged
+    paint; its corners fitted to the line's core, its half width measured between the outline's
+    sides), or, with ``cfg.line_from`` "skeleton" or where the outline gives no line, the voxel
+    skeleton of the whole paint (then centred on the paint, its half width measured across it)."""
+    if cfg.line_from == "outline" and not _broken(d_xyz, cfg):
+        metal = surf.tree if surf.name != "drawing" else None  # bare metal beside the paint, where there is a surface
+        core, o = line_core(d_xyz, surf.normals(d_xyz), metal)
+        if len(o.line) and core is not d_xyz:
+            g = curve_graph(o.line, min_branch_m=cfg.min_branch_m, paint=cKDTree(d_xyz), bridge_m=6.0 * o.half_width_m)
+            if g.branches:
+                return g, core, o.half_width_m
+    return (drawing_graph(d_xyz, cfg.voxel_m, cfg.min_branch_m, cfg.closing_iterations, surface=surf.xyz), d_xyz,
+            None)
 
 
 def _stand_off_solutions(kin: Kinematics, T: np.ndarray, q_near: np.ndarray, cfg: CutPathConfig,
