@@ -258,6 +258,8 @@ class CutPathConfig(_Strict):
     side_tilt_max_deg: float = Field(10.0, ge=0, le=45, description="torch axis tilt across the travel, either way")
     tilt_steps: int = Field(2, ge=0, le=6, description="samples per side of each tilt range (0: the normal only)")
     tilt_cost_weight: float = Field(1.0, ge=0, le=100, description="cost of tilt (rad^2) against joint motion (rad^2)")
+    min_cut_m: float = Field(0.02, ge=0, le=0.5, description="a run shorter than this is no cut (a pierce for a stub), "
+                             "unless its whole stroke is")
     max_joint_jump_rad: float = Field(0.2, gt=0, le=math.pi, description="larger joint change between poses is infeasible")
     ik_margin_rad: float = Field(0.05, ge=0, le=0.5, description="kept from every joint limit")
     ik_seeds: int = Field(8, ge=1, le=64, description="IK starts per torch pose (tracks of the ladder graph)")

@@ -343,9 +343,10 @@ def test_a_blocked_stretch_splits_the_cut_and_is_reported_not_the_whole_branch(k
     assert not (cut & uncut).any()
 
 
-def test_a_run_shorter_than_a_step_is_no_cut(kin):
-    """Where the torch can hold only a couple of poses 1 mm apart (pivot steps in an inside corner),
-    those poses are a pierce, not a cut: they join the gap around them, with its reason."""
+def test_a_run_shorter_than_the_least_cut_is_no_cut(kin):
+    """Where the torch can hold only a couple of poses 1 mm apart (pivot steps in an inside corner), or
+    a stub of a line shorter than ``min_cut_m`` between two gaps, those poses are a pierce for nothing,
+    not a cut: they join the gap around them, with its reason. A longer stretch is cut."""
     pts, _, poses, times = straight([0.40, -0.02], [0.40, 0.02], spacing=0.001)
 
     def only(lo, hi):  # the torch aimed at paint between y = lo and hi, however tilted
@@ -358,6 +359,11 @@ def test_a_run_shorter_than_a_step_is_no_cut(kin):
     lad = plan_ladder(kin, poses, times, PANDA_Q_READY, CFG, only(-0.0025, -0.0005), PANDA_MAX_VELOCITY)
     assert lad.runs == [] and [g.reason for g in lad.gaps] == [COLLISION]
     lad = plan_ladder(kin, poses, times, PANDA_Q_READY, CFG, only(-0.008, 0.0005), PANDA_MAX_VELOCITY)
+    assert lad.runs == [] and [g.reason for g in lad.gaps] == [COLLISION]  # 8 mm: a stub
+    lad = plan_ladder(kin, poses, times, PANDA_Q_READY, CFG, only(-0.019, 0.0055), PANDA_MAX_VELOCITY)
+    assert len(lad.runs) == 1 and lad.runs[0].last - lad.runs[0].first >= CFG.min_cut_m / 0.001 - 1
+    short = CFG.model_copy(update={"min_cut_m": 0.005})
+    lad = plan_ladder(kin, poses, times, PANDA_Q_READY, short, only(-0.008, 0.0005), PANDA_MAX_VELOCITY)
     assert len(lad.runs) == 1 and lad.runs[0].last - lad.runs[0].first >= 5
 
 

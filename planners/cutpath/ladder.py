@@ -285,10 +285,12 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
             out.layer_reason.append(COLLISION)
         else:
             out.layer_reason.append(JOINT_LIMITS)
-    # a run that gets less than one spacing along the line (a pivot in place at an inside corner)
-    # is a pierce, not a cut: its layers join the gap beside it, with that gap's reason
+    # a run shorter than ``min_cut_m`` along the line (a pivot in place at an inside corner, a stub
+    # between two gaps) is a pierce for nothing, not a cut: its layers join the gap beside it, with that
+    # gap's reason; unless the whole branch is that short (then one spacing will do)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))])
-    short = [s[last] - s[first] < 0.999 * cfg.spacing_m for first, last in runs]
+    least = cfg.min_cut_m if s[-1] >= cfg.min_cut_m else cfg.spacing_m
+    short = [s[last] - s[first] < 0.999 * least for first, last in runs]
     for (first, last), drop in zip(runs, short):
         if drop:
             beside = [r for r in out.layer_reason[max(first - 1, 0):last + 2] if r] or [SINGULAR]
