@@ -240,6 +240,8 @@ class CutPathConfig(_Strict):
     bridge_max_m: float = Field(0.08, gt=0, le=0.5, description="pieces of a broken line this close belong to one line")
     min_piece_m: float = Field(0.008, gt=0, le=0.2, description="a piece of paint shorter than this along the line is a speck")
     smoothing_voxels: float = Field(0.5, ge=0, le=5, description="B-spline: RMS deviation allowed from the skeleton")
+    outline_smoothing_m: float = Field(0.001, ge=0, le=0.02, description="B-spline: RMS deviation allowed from the "
+                                       "line the paint's outline gives (line_from: outline)")
     corner_deg: float = Field(45.0, gt=0, le=180, description="a turn sharper than this is a corner: not smoothed away")
     corner_scale_m: float = Field(0.03, ge=0, le=0.2, description="arc over which a corner's turn is measured (0: no corners)")
     spacing_m: float = Field(0.005, ge=0.0005, le=0.1, description="arc length between torch poses")

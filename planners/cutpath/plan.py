@@ -96,9 +96,14 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
         closed = a == b and g.kinds[a] == LOOP
         strokes.append(poly)
         held: list = []  # the corners: the torch pivots on them, resampling keeps them
-        pts = smooth_resample(poly, cfg.spacing_m, cfg.smoothing_voxels * cfg.voxel_m, closed,
-                              corner_scale_m=cfg.corner_scale_m if half is None else min(cfg.corner_scale_m, 2 * half),
-                              corner_deg=cfg.corner_deg, paint=band, held=held)
+        if half is None:  # the skeleton's voxel staircase is smoothed away, its corners measured on 3 cm and
+            # fitted to the paint beside them
+            smoothing, corner_scale, corner_paint = cfg.smoothing_voxels * cfg.voxel_m, cfg.corner_scale_m, band
+        else:  # the outline's line is smooth already and keeps its turns: lightly smoothed, a corner (an edge of
+            # the metal the line goes over, a tip) fitted to the line itself (the paint beside a tip is both legs')
+            smoothing, corner_scale, corner_paint = cfg.outline_smoothing_m, cfg.corner_scale_m, None
+        pts = smooth_resample(poly, cfg.spacing_m, smoothing, closed, corner_scale_m=corner_scale,
+                              corner_deg=cfg.corner_deg, paint=corner_paint, held=held)
         pts = center_on_paint(pts, band, cfg.spacing_m, closed, normals=surf.normals(pts), single_band=half is not None)
         if not closed and END in (g.kinds[a], g.kinds[b]):  # along the centred line; what it adds centred too
             n = surf.normals(pts)
