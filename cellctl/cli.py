@@ -263,16 +263,27 @@ def _print_summary(r, run_dir: Path) -> None:
                                  + ("; uncut: " + ", ".join(f"{1000 * v:.0f} mm {k}" for k, v in sorted(uncut.items()))
                                     if uncut else "")
                                  + (f"; {c.error}" if c.error else "")))
+        if p := c.paint:
+            left = sum(u.length_m for u in p.uncut)
+            rows.append(("cut vs paint", f"the flame passes over {100 * p.cut_share:.1f} % of the paint seen (a "
+                                         f"{1000 * p.line_length_m:.0f} mm line, {p.spray_width_mm:.0f} mm wide); "
+                                         f"{1000 * left:.0f} mm of it uncut; the lit flame at most "
+                                         f"{p.flame_off_paint_max_mm} mm off the paint"))
         for msg in c.warnings:
             rows.append(("warning", msg))
         if a := c.accuracy:
-            rows.append(("cut vs true line", f"{100 * a.cut_coverage:.1f} % of the line within 5 mm of a cut; "
-                                             f"path to line mean {a.path_to_line_mean_mm} mm, max "
-                                             f"{a.path_to_line_max_mm} mm; {a.cuts} cuts for {a.strokes} strokes"))
+            rows.append(("cut vs true line", f"{100 * a.cut_coverage:.1f} % of the line within 5 mm of the flame; "
+                                             f"flame to line mean {a.path_to_line_mean_mm} mm, max "
+                                             f"{a.path_to_line_max_mm} mm over the lit motion ({a.pose_to_line_max_mm} "
+                                             f"mm at the poses); tip {a.tip_to_metal_min_mm}-{a.tip_to_metal_max_mm} "
+                                             f"mm off the metal; {a.cuts} cuts for {a.strokes} strokes"))
         if d := c.dry_run:
             rows.append(("dry-run cut", f"{d.motions} motions, tip error max {d.tip_error_max_mm} mm "
                                         f"(median {d.tip_error_median_mm}), off the path max "
-                                        f"{d.path_error_max_mm} mm, {d.contacts} contacts"))
+                                        f"{d.path_error_max_mm} mm, {d.contacts} contacts; the executed flame at most "
+                                        f"{d.flame_off_paint_max_mm} mm off the paint"
+                                        + (f", {d.flame_to_line_max_mm} mm off the true line"
+                                           if d.flame_to_line_max_mm is not None else "")))
     if r.error:
         rows.append(("error", r.error))
     rows.append(("run folder", str(run_dir)))

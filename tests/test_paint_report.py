@@ -138,3 +138,22 @@ def test_the_generated_report_sets_the_cell_beside_the_oracle_and_the_truth():
     assert o["self_within_3_points"] == 2 and o["pieces_with_fragments"] == 1
     md = "\n".join(section(_doc()))
     assert "| scrap:4:0 | plate | zigzag |" in md and "**error**: boom" in md
+
+
+def test_the_operator_is_told_the_share_of_the_paint_not_the_line_s_own():
+    from cellctl.scan.result import CutPathSummary, PaintCheck, ResultSummary, UncutPaintSummary
+    from cellctl.service.server import cut_warning
+
+    paint = PaintCheck(cut_share=0.82, line_length_m=0.61, spray_width_mm=20.0,
+                       uncut=[UncutPaintSummary(centre=[0.4, 0.0, 0.1], length_m=0.11, reason="not followed")])
+    cut = CutPathSummary(branches=1, feasible_branches=1, poses=90, feasible_poses=90, length_m=0.45, planning_s=1.0,
+                         cut_fraction=1.0, drawing_length_m=0.45, paint=paint)
+    assert cut.told_share == 0.82 and cut.told_length_m == 0.61
+    r = ResultSummary(scene="s", planner="gnbv", steps=2, terminated_by="frontier", coverage_percent=100.0,
+                      coverage_hit=1, coverage_total=1, planning_s=1.0, step_s=1.0, capture_s=0.1,
+                      motion_planning_s=0.1, motion_s=1.0, displacement_m=0.1, cut=cut)
+    note = cut_warning(r)
+    assert note.startswith("warning: 82.0 % of the drawing") and "110 mm not followed" in note
+    # without a paint check (an old result) the line's own share is all there is
+    bare = r.model_copy(update={"cut": cut.model_copy(update={"paint": None, "cut_fraction": 0.9})})
+    assert bare.cut.told_share == 0.9 and cut_warning(bare).startswith("warning: 90.0 %")

@@ -121,6 +121,17 @@ class CutPathSummary(Summary):
     paint: PaintCheck | None = Field(None, description="the cut against the paint the cell saw")
     accuracy: CutAccuracy | None = None
 
+    @property
+    def told_share(self) -> float:
+        """The share of the line the operator is told will be cut: the paint under the flame, as measured
+        (``paint.cut_share``), where the cut was checked against it; else the line's own share."""
+        return self.paint.cut_share if self.paint is not None else self.cut_fraction
+
+    @property
+    def told_length_m(self) -> float:
+        """The line's length the operator is told: as the paint shows it, where measured."""
+        return self.paint.line_length_m if self.paint is not None else self.drawing_length_m
+
 
 class ResultSummary(Summary):
     """What the scan found; the full result is result.json in the job's artifacts folder."""

@@ -365,10 +365,15 @@ has a folder, and again once retention has deleted it (`service.retention_days`,
 oldest ended jobs first, never the last one); it never names a folder that does not exist.
 
 - `done`: the scan ended by itself (quality, frontier, max_steps, ...); `result.cut` says what will be cut:
-  `cut_fraction` of the drawing's length in `feasible_branches` cuts, the `gaps` left uncut with their
-  reasons, `warnings` in words (its own `error` when no cut could be planned). When not all of the line
-  will be cut, the `done` transition's `note` and the final event's `message` start with `warning:`
-  (e.g. `warning: 94.1 % of the drawing will be cut in 1 cuts; uncut: 40 mm out of reach`).
+  `paint.cut_share`, the share of the paint the scan saw that lies under the flame's path (measured at
+  every sample of the planned motion with the flame lit), `paint.uncut` the pieces of paint left, where and
+  why; `cut_fraction`, the share of the drawing's length the cell's own line says it covers (where the two
+  disagree by more than 3 points a warning says so: trust the paint); `feasible_branches` cuts, the `gaps`
+  left uncut with their reasons, `warnings` in words (its own `error` when no cut could be planned). When
+  not all of the paint will be cut, the `done` transition's `note` and the final event's `message` start
+  with `warning:` and give the paint's share (`paint.cut_share`; `cut_fraction` where no paint check was
+  made) and what is left by reason (e.g. `warning: 94.1 % of the drawing will be cut in 1 cuts; uncut:
+  40 mm out of reach`).
 - `failed`: the scan failed (`error`), or ran longer than `service.job_timeout_s` (`error` starts with
   `timeout:`); the partial result is kept.
 - `cancelled`: by a cancel request; the partial result is kept.

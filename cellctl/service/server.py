@@ -544,10 +544,14 @@ def cut_warning(summary: ResultSummary | None) -> str | None:
     for g in cut.gaps:
         if g.length_m > 0:
             uncut[g.reason] = uncut.get(g.reason, 0.0) + g.length_m
-    if cut.cut_fraction >= 0.999 and not uncut:
+    if cut.paint is not None:  # what the paint says, not the cut's own line
+        uncut = {}
+        for u in cut.paint.uncut:
+            uncut[u.reason] = uncut.get(u.reason, 0.0) + u.length_m
+    if cut.told_share >= 0.999 and not uncut:
         return None
     parts = ", ".join(f"{1000 * v:.0f} mm {k}" for k, v in sorted(uncut.items()))
-    return (f"warning: {100 * cut.cut_fraction:.1f} % of the drawing will be cut in {cut.feasible_branches} cuts"
+    return (f"warning: {100 * cut.told_share:.1f} % of the drawing will be cut in {cut.feasible_branches} cuts"
             + (f"; uncut: {parts}" if parts else ""))[:500]
 
 

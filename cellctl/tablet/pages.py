@@ -384,7 +384,7 @@ def register(cfg: TabletConfig, yard: Yard, accounts: AccountBook) -> None:
                 if cut is None:
                     ui.label("No cut was planned.").classes("text-xl text-red-9")
                 else:
-                    ui.label(f"{100 * cut.cut_fraction:.0f} % of the {100 * cut.drawing_length_m:.0f} cm line will "
+                    ui.label(f"{100 * cut.told_share:.0f} % of the {100 * cut.told_length_m:.0f} cm line will "
                              f"be cut").classes("text-2xl").props("data-testid=cut-fraction")
                     ui.label(f"{cut.feasible_branches} cut{'s' if cut.feasible_branches != 1 else ''}"
                              + (f" ({cut.branches - cut.feasible_branches} the arm cannot run)"
