@@ -285,12 +285,17 @@ def plan_ladder(kin: Kinematics, poses: np.ndarray, times: np.ndarray, q_start: 
             out.layer_reason.append(COLLISION)
         else:
             out.layer_reason.append(JOINT_LIMITS)
-    # a run shorter than ``min_cut_m`` along the line (a pivot in place at an inside corner, a stub
-    # between two gaps) is a pierce for nothing, not a cut: its layers join the gap beside it, with that
-    # gap's reason; unless the whole branch is that short (then one spacing will do)
+    # a run shorter than one spacing along the line (a pivot in place at an inside corner) is a pierce,
+    # not a cut; so is one shorter than ``min_cut_m`` between two stretches left uncut (a stub: a pierce
+    # for a few millimetres), unless the whole branch is that short. Their layers join the gap beside
+    # them, with that gap's reason. A short run the torch lands on again beside another run (a
+    # reconfiguration: nothing is left uncut between them) cuts its paint and stays.
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1))])
     least = cfg.min_cut_m if s[-1] >= cfg.min_cut_m else cfg.spacing_m
-    short = [s[last] - s[first] < 0.999 * least for first, last in runs]
+    lands = {last for _, last in runs} & {first for first, _ in runs}  # layers where a run hands over to the next
+    short = [s[last] - s[first] < 0.999 * cfg.spacing_m
+             or (s[last] - s[first] < 0.999 * least and first not in lands and last not in lands)
+             for first, last in runs]
     for (first, last), drop in zip(runs, short):
         if drop:
             beside = [r for r in out.layer_reason[max(first - 1, 0):last + 2] if r] or [SINGULAR]
@@ -361,9 +366,16 @@ def _joins(Qf: np.ndarray, rung_axis: np.ndarray, cfg: CutPathConfig) -> tuple[n
     ``max_joint_jump_rad`` plus what turning the torch between the two rungs needs (PIVOT_GAIN per
     radian): at a sharp corner of the line the torch pivots about its tip, the joints turn with it,
     and the cut slows down there (``pivot_times``); a jump without such a turn is a change of arm
-    configuration, which needs the torch lifted. Computed once: the lazy search asks for it often."""
+    configuration, which needs the torch lifted. The torch's axis may turn by the normal's turn between
+    the two poses plus one ``pivot_step_deg`` (rung 0 of each layer holds the normal). Computed once: the
+    lazy search asks for it often."""
     cos = np.einsum("kid,kjd->kij", rung_axis[:-1], rung_axis[1:])
-    limit = cfg.max_joint_jump_rad + PIVOT_GAIN * np.arccos(np.clip(cos, -1.0, 1.0))
+    turn = np.arccos(np.clip(cos, -1.0, 1.0))
+    limit = cfg.max_joint_jump_rad + PIVOT_GAIN * turn
+    # the torch turns between two poses by the normal's turn and one pivot step more at most: a tilt
+    # thrown from one side of the cone to the other between two poses swings the flame off the line
+    nominal = np.arccos(np.clip(np.einsum("kd,kd->k", rung_axis[:-1, 0], rung_axis[1:, 0]), -1.0, 1.0))
+    steady = turn <= nominal[:, None, None] + np.radians(cfg.pivot_step_deg) + 1e-9
     jump = np.zeros_like(limit)
     cost = np.zeros_like(limit)
     for j in range(Qf.shape[2]):  # per joint: keeps the temporaries at (N-1,R,R)
@@ -371,7 +383,7 @@ def _joins(Qf: np.ndarray, rung_axis: np.ndarray, cfg: CutPathConfig) -> tuple[n
         np.maximum(jump, np.abs(d), out=jump)  # NaN (no solution) stays NaN: never joins
         cost += d * d
     with np.errstate(invalid="ignore"):
-        return jump <= limit, cost
+        return (jump <= limit) & steady, cost
 
 
 def pivot_times(points: np.ndarray, q: np.ndarray, travel_speed: float, max_vel: np.ndarray) -> np.ndarray:
