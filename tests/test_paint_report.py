@@ -157,3 +157,16 @@ def test_the_operator_is_told_the_share_of_the_paint_not_the_line_s_own():
     # without a paint check (an old result) the line's own share is all there is
     bare = r.model_copy(update={"cut": cut.model_copy(update={"paint": None, "cut_fraction": 0.9})})
     assert bare.cut.told_share == 0.9 and cut_warning(bare).startswith("warning: 90.0 %")
+
+
+def test_the_generated_report_gives_each_piece_s_spread_over_seeds():
+    from cellctl.bench.generated import seed_spread
+
+    doc = _doc()
+    again = {**doc["runs"][0], "seed": 1,
+             "cut": {**doc["runs"][0]["cut"], "accuracy": {**doc["runs"][0]["cut"]["accuracy"], "cut_coverage": 0.74}}}
+    doc["runs"].append(again)
+    rows = piece_rows(doc)
+    assert seed_spread(rows) == {"scrap:4:0": pytest.approx(7.0)}
+    assert "| true cut coverage's range over the seeds, per piece: max (points) | 7.0 (0 of 1 pieces within 5) |" \
+        in "\n".join(section(doc))

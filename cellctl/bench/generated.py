@@ -79,6 +79,15 @@ def overall(rows: list[dict]) -> dict:
     }
 
 
+def seed_spread(rows: list[dict]) -> dict[str, float]:
+    """Per piece run with several seeds: the range (max - min) of its true cut coverage, in points."""
+    by: dict[str, list[float]] = {}
+    for r in rows:
+        if r["true_coverage"] is not None:
+            by.setdefault(r["ref"], []).append(100 * r["true_coverage"])
+    return {ref: max(v) - min(v) for ref, v in by.items() if len(v) > 1}
+
+
 def _f(x, nd: int = 1, scale: float = 1.0) -> str:
     return "–" if x is None else f"{scale * x:.{nd}f}"
 
@@ -93,6 +102,7 @@ def section(doc: dict) -> list[str]:
     if not rows:
         return []
     o = overall(rows)
+    spread = seed_spread(rows)
     g = (doc.get("bench") or {}).get("generated") or {}
     L = ["## Generated pieces", "",
          f"{o['pieces']} pieces of generator seed {g.get('gen_seed')} ({o['errors']} with an error). The cell's cut is "
@@ -112,6 +122,8 @@ def section(doc: dict) -> list[str]:
          f"(worst {_f(o['self_error_max_points'], 1)} points) |",
          f"| fragments (cuts under {1000 * FRAGMENT_M:.0f} mm) | {o['fragments']} on {o['pieces_with_fragments']} pieces |",
          f"| cut planning, median (s) | {_f(o['planning_median_s'], 2)} |",
+         *([f"| true cut coverage's range over the seeds, per piece: max (points) | {_f(max(spread.values()), 1)} "
+            f"({sum(1 for v in spread.values() if v <= 5.0)} of {len(spread)} pieces within 5) |"] if spread else []),
          f"| scan coverage, median (%) | {_f(o['scan_percent_median'], 1)} |", "",
          "| piece | family | lines | scan (%) | self-reported (%) | own line (%) | true (%) | oracle (%) | true/oracle | "
          "flame to line max (mm) | at poses (mm) | tip off metal (mm) | cuts | fragments | uncut by reason (mm) | "
