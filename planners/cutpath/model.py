@@ -119,6 +119,7 @@ class CutPath:
     gaps: list[Gap] = field(default_factory=list)
     drawing_length_m: float | None = None  # the drawing's branches before planning split them
     notes: list[str] = field(default_factory=list)  # what the operator should know about the drawing
+    spray_width_m: float | None = None  # as the paint's outline measured it (None: not measured there)
 
     @property
     def feasible(self) -> bool:
@@ -173,6 +174,7 @@ class CutPath:
             "cut_fraction": round(self.cut_fraction, 4),
             "gaps": [g.to_json_dict() for g in self.gaps],
             "notes": list(self.notes),
+            "spray_width_m": self.spray_width_m,
             "junctions": _lists(self.junctions),
             "endpoints": _lists(self.endpoints),
             "config": self.config,
@@ -210,7 +212,7 @@ class CutPath:
                     None if g.get("normal") is None else np.array(g["normal"], dtype=np.float64))
                 for g in d.get("gaps", [])]
         return cls(branches, arr(d["junctions"], (3,)), arr(d["endpoints"], (3,)), dict(d.get("config", {})), gaps,
-                   d.get("drawing_length_m"), list(d.get("notes", [])))
+                   d.get("drawing_length_m"), list(d.get("notes", [])), d.get("spray_width_m"))
 
     def write(self, folder: str | Path) -> tuple[Path, Path]:
         """cut_path.json and cut_path.csv in `folder` (created). Returns their paths."""

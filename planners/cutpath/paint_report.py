@@ -211,12 +211,16 @@ def lit_flames(path, kin, standoff_m: float) -> list[FlamePath]:
 
 
 def cut_against_paint(path, kin, paint: np.ndarray, surface, cfg, voxel_m: float) -> PaintReport:
-    """``paint_report`` of a planned ``CutPath``: the spray's half width measured across the planned
-    line (the median reach of the paint beside it, robust to a stretch the line gets wrong), the
-    normals and the tip's clearance from the measured ``surface`` (a ``geometry.Surface``)."""
+    """``paint_report`` of a planned ``CutPath``: the spray's half width as the outline measured it
+    (``CutPath.spray_width_m``), else measured across the planned line (the median reach of the paint
+    beside it, robust to a stretch the line gets wrong), the normals and the tip's clearance from the
+    measured ``surface`` (a ``geometry.Surface``)."""
     from planners.cutpath.geometry import band_half_width
 
     paint = np.asarray(paint, dtype=np.float64).reshape(-1, 3)
+    if path.spray_width_m:  # measured between the outline's sides: the paint of a sharp tip's other leg is not in it
+        return paint_report(paint, surface.normals(paint), voxel_m, 0.5 * path.spray_width_m, cfg.line_tolerance_m,
+                            lit_flames(path, kin, cfg.standoff_m), surface.tree, path.gaps)
     widths = [(b.length_m, band_half_width(b.points, paint, cfg.spacing_m, b.closed, normals=b.normals))
               for b in path.branches if len(b) >= 2]
     widths = [(w, h) for w, h in widths if h > 0]

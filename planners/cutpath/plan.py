@@ -129,7 +129,7 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
         nodes = surf.snap(nodes, surf.normals(nodes))
     kinds = np.array(g.kinds)
     path = CutPath(branches, nodes[kinds == JUNCTION].reshape(-1, 3), nodes[kinds == END].reshape(-1, 3),
-                   cfg.model_dump(mode="json"))
+                   cfg.model_dump(mode="json"), spray_width_m=None if half is None else 2.0 * half)
     if pieces:
         path.notes.append(f"the line is broken: {len(pieces)} separate pieces of paint, each a short cut along it")
     if ignored:
