@@ -1,7 +1,7 @@
-"""Test scenes for the twin: the built-in catalog and user YAML scene files.
+"""Test scenes for the twin: the built-in catalog, generated scrap and user YAML scene files.
 
-`load_scene("t_piece")` or `load_scene("configs/scenes/example_plate.yaml")` -> `Scene` in the
-robot base frame. Built-in scenes are built once per process; each call returns a fresh copy.
+`load_scene("t_piece")`, `load_scene("scrap:0:17")` (generator seed 0, piece 17; sim/scenes/scrap.py)
+or `load_scene("configs/scenes/example_plate.yaml")` -> `Scene` in the robot base frame. Built-in scenes are built once per process; each call returns a fresh copy.
 """
 
 from __future__ import annotations
@@ -20,6 +20,13 @@ def load_scene(name_or_path: str | os.PathLike) -> Scene:
     ref = os.fspath(name_or_path)
     if ref in SCENE_NAMES:
         return build_catalog_scene(ref)
+    if ref.startswith("scrap:"):
+        from sim.scenes.scrap import load_scrap, parse_ref
+
+        if parse_ref(ref) is None:
+            raise SceneError(f"bad generated piece {ref!r}: write scrap:<gen_seed>:<index>, e.g. scrap:0:17")
+        return load_scrap(ref)
     if ref.lower().endswith((".yaml", ".yml")) or os.sep in ref or os.path.isfile(ref):
         return load_scene_file(ref)
-    raise SceneError(f"unknown scene {ref!r}: use one of {', '.join(SCENE_NAMES)}, or a path to a .yaml scene file")
+    raise SceneError(f"unknown scene {ref!r}: use one of {', '.join(SCENE_NAMES)}, a generated piece "
+                     "scrap:<gen_seed>:<index>, or a path to a .yaml scene file")

@@ -47,6 +47,8 @@ class PoseSpec(_Strict):
 class DrawingSpec(_Strict):
     width: Annotated[Num, Field(ge=0.005, le=0.05)]
     polylines: Annotated[list[Annotated[list[Vec3], Field(min_length=2)]], Field(min_length=1)]
+    # paint only where the line lies within this of the surface (a line drawn across a basket's gaps)
+    max_offset: Annotated[Num, Field(gt=0.0, le=MAX_OFF_SURFACE)] | None = None
 
 
 class CameraSpec(_Strict):
@@ -132,7 +134,8 @@ def load_scene_file(path: str | Path) -> Scene:
     if spec.initial_camera is not None:
         camera = look_at(spec.initial_camera.eye, spec.initial_camera.target)
     colors = spec.colors or ColorsSpec()
-    bp = Blueprint(mesh, polylines, spec.drawing.width, pose_matrix(spec.pose), None)
+    bp = Blueprint(mesh, polylines, spec.drawing.width, pose_matrix(spec.pose), None,
+                   max_offset=spec.drawing.max_offset)
     try:
         return assemble_scene(spec.name, bp, object_rgb=colors.object, paint_rgb=colors.paint,
                               initial_camera_pose=camera)

@@ -137,7 +137,8 @@ def _extrude_strip(left: np.ndarray, right: np.ndarray, length: float, closed: b
     idx = np.arange(n - 1) if not closed else np.arange(n)
     a, b = idx, (idx + 1) % n
     tri = np.vstack([np.column_stack([a, b, n + b]), np.column_stack([a, n + b, n + a])])
-    area = np.cross(verts[tri[:, 1]] - verts[tri[:, 0]], verts[tri[:, 2]] - verts[tri[:, 0]])
+    e1, e2 = verts[tri[:, 1]] - verts[tri[:, 0]], verts[tri[:, 2]] - verts[tri[:, 0]]
+    area = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
     tri[area < 0] = tri[area < 0][:, ::-1]  # counter-clockwise in the section plane
     mesh = trimesh.creation.extrude_triangulation(verts, tri, length)
     # (y, z, h) -> (h - L/2, y, z): a cyclic permutation of the axes keeps the winding
@@ -152,6 +153,34 @@ def _revolve(profile_rh: np.ndarray, axis: str, sections: int = 128) -> trimesh.
     mesh = trimesh.creation.revolve(np.asarray(profile_rh, dtype=np.float64), sections=sections)
     if axis == "y":
         mesh.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))  # z -> y
+    return mesh
+
+
+def _tube(centre: np.ndarray, radius: float, sections: int = 48) -> trimesh.Trimesh:
+    """A closed pipe of ``radius`` along a centreline lying in the xy plane (straight ends and bends):
+    one ring of vertices per centreline point, square to the mean of its two segments, and flat caps.
+    One sweep, no booleans: a union of a torus with cylinders left near-duplicate seam vertices."""
+    c = np.asarray(centre, dtype=np.float64)
+    d = np.diff(c, axis=0)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t = np.vstack([d[:1], d[:-1] + d[1:], d[-1:]])
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    z = np.array([0.0, 0.0, 1.0])
+    n = np.cross(t, z)
+    a = np.linspace(0.0, 2 * np.pi, sections, endpoint=False)
+    ring = (c[:, None, :] + radius * (np.cos(a)[None, :, None] * n[:, None, :] + np.sin(a)[None, :, None] * z))
+    k, m = len(c), sections
+    verts = np.vstack([ring.reshape(-1, 3), c[:1], c[-1:]])
+    i, j = np.meshgrid(np.arange(k - 1), np.arange(m), indexing="ij")
+    v00, v01 = i * m + j, i * m + (j + 1) % m
+    v10, v11 = v00 + m, v01 + m
+    side = np.vstack([np.column_stack([v00.ravel(), v10.ravel(), v11.ravel()]),
+                      np.column_stack([v00.ravel(), v11.ravel(), v01.ravel()])])
+    jj = np.arange(m)
+    cap0 = np.column_stack([np.full(m, k * m), (jj + 1) % m, jj])
+    cap1 = np.column_stack([np.full(m, k * m + 1), (k - 1) * m + jj, (k - 1) * m + (jj + 1) % m])
+    mesh = trimesh.Trimesh(verts, np.vstack([side, cap0, cap1]), process=True)
+    mesh.fix_normals()
     return mesh
 
 
@@ -280,21 +309,12 @@ def elbow(rng):
     r = rng.uniform(0.05, 0.1)
     R = rng.uniform(1.5, 3.0) * r
     bend = np.radians(rng.uniform(45, 120))
-    tor = trimesh.creation.torus(R, r, major_sections=160, minor_sections=48)
-    big = 4 * (R + r)
-    h1 = _box([big, big, big], [0, big / 2, 0])  # y >= 0
-    h2 = _box([big, big, big], [0, -big / 2, 0])
-    h2.apply_transform(trimesh.transformations.rotation_matrix(bend, [0, 0, 1]))  # the half-plane past the bend
-    wedge = trimesh.boolean.intersection([tor, h1, h2], engine="manifold") if bend < np.pi else None
     stub = rng.uniform(0.03, 0.08)
-    ends = []
-    for ang, sgn in ((0.0, -1.0), (bend, 1.0)):
-        c = trimesh.creation.cylinder(radius=r, height=stub, sections=48)
-        c.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))  # axis y
-        c.apply_translation([R, sgn * stub / 2, 0])
-        c.apply_transform(trimesh.transformations.rotation_matrix(ang, [0, 0, 1]))
-        ends.append(c)
-    mesh = _union([wedge] + ends)
+    phi = np.linspace(0.0, bend, 1 + int(np.ceil(bend / np.radians(1.5))))
+    arc = np.column_stack([R * np.cos(phi), R * np.sin(phi), np.zeros_like(phi)])
+    tangent_end = np.array([-np.sin(bend), np.cos(bend), 0.0])
+    centre = np.vstack([[R, -stub, 0.0], arc, arc[-1] + stub * tangent_end])
+    mesh = _tube(centre, r)
     mesh.apply_translation([0, 0, r])
 
     def point(uv):
@@ -523,7 +543,8 @@ def draw_line(kind: str, chart: Chart, rng) -> tuple[list[np.ndarray], dict]:
         base = _dense(_curve(rng, rng.uniform(0.3, 0.5)) if rng.random() < 0.5 else
                       np.array([[0, 0], [rng.uniform(0.3, 0.45), rng.uniform(-0.1, 0.1)]]))
         s = _arc(base)
-        dash, gap = rng.uniform(0.04, 0.08), rng.uniform(0.015, 0.03)
+        # the gap between the dashes' centrelines: wider than the spray (at most 28 mm), so the paint has gaps
+        dash, gap = rng.uniform(0.04, 0.08), rng.uniform(0.045, 0.07)
         phase = np.mod(s, dash + gap) < dash
         cuts = np.flatnonzero(np.diff(phase.astype(int)) != 0) + 1
         strokes = [p for p, on in zip(np.split(base, cuts), np.split(phase, cuts)) if on[0] and len(p) > 2]

@@ -1,0 +1,91 @@
+"""The scrap generator: every family builds a closed piece on the floor, in reach, with its line painted
+on it; the same reference gives the same piece; a piece kept as a scene file loads back the same.
+
+Tests of: sim.scenes.scrap (and the scrap: reference of sim.scenes.load_scene).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from sim.scenes import SceneError, load_scene
+from sim.scenes.paint import closest_points
+from sim.scenes.scrap import (BASE_CLEAR_M, FAMILY_NAMES, REACH_M, SHOULDER, _family_of, generate, parse_ref,
+                              scrap_refs, write_scene_file)
+
+FIRST = scrap_refs(len(FAMILY_NAMES), gen_seed=0)  # every family once
+
+
+@pytest.fixture(scope="module", params=FIRST)
+def piece(request):
+    return request.param, load_scene(request.param)
+
+
+def test_references_parse_and_bad_ones_are_refused():
+    assert parse_ref("scrap:3:41") == (3, 41)
+    assert parse_ref("scrap:3") is None and parse_ref("scrap:a:1") is None and parse_ref("t_piece") is None
+    for bad in ("scrap:3", "scrap:-1:2", "scrap:x:y"):
+        with pytest.raises(SceneError, match="scrap:<gen_seed>:<index>"):
+            load_scene(bad)
+
+
+def test_each_run_of_thirteen_holds_every_family():
+    for seed in (0, 5):
+        assert sorted(_family_of(seed, i) for i in range(13, 26)) == sorted(FAMILY_NAMES)
+
+
+def test_the_same_reference_gives_the_same_piece_and_another_seed_another():
+    a, b, c = generate(0, 4), generate(0, 4), generate(1, 4)
+    assert a[0] == b[0] and a[2] == b[2]
+    assert np.array_equal(a[1].mesh.vertices, b[1].mesh.vertices) and np.array_equal(a[1].T_base_obj, b[1].T_base_obj)
+    assert all(np.array_equal(p, q) for p, q in zip(a[1].polylines, b[1].polylines))
+    assert a[2] != c[2] or not np.array_equal(a[1].T_base_obj, c[1].T_base_obj)
+
+
+def test_piece_is_closed_on_the_floor_clear_of_the_base(piece):
+    ref, scene = piece
+    full = scene.full_mesh
+    full.merge_vertices()
+    assert full.is_watertight, ref
+    lo = full.vertices.min(0)
+    assert abs(lo[2]) < 1e-6, f"{ref} floats or sinks: z min {lo[2]}"
+    assert np.hypot(*full.vertices[:, :2].T).min() >= BASE_CLEAR_M - 0.02, ref
+
+
+def test_line_is_painted_on_the_surface_within_reach(piece):
+    ref, scene = piece
+    assert len(scene.gt_points) > 300 and len(scene.paint_mesh.faces)
+    for line in scene.drawing_polylines:
+        assert closest_points(scene.full_mesh, line)[1].max() < 1.5e-3, ref
+    assert np.linalg.norm(scene.gt_points - SHOULDER, axis=1).max() <= REACH_M + 0.03, ref
+    # the paint follows the line: every painted sample lies within the spray's half width of it
+    line = np.vstack(scene.drawing_polylines)
+    d, _ = cKDTree(line).query(scene.gt_points)
+    assert np.quantile(d, 0.99) < scene.drawing_width / 2 + 4e-3, ref
+
+
+def test_dashes_leave_bare_metal_between_them():
+    """The gap between dashes is wider than the spray: the paint falls in one island per dash (the cut
+    bridged gaps of 15-30 mm that the spray had closed)."""
+    for ref in scrap_refs(40, 0):
+        name, bp, meta = generate(*parse_ref(ref))
+        if meta["lines"] == ["dashed"]:
+            break
+    else:
+        pytest.fail("no dashed line in the first 40 pieces")
+    scene = load_scene(ref)
+    islands = trimesh.graph.connected_components(scene.paint_mesh.face_adjacency, min_len=1)
+    assert len(islands) >= meta["strokes"] >= 2, (ref, meta)
+
+
+def test_a_piece_kept_as_a_scene_file_loads_back_the_same(tmp_path):
+    ref = FIRST[4]
+    path = write_scene_file(ref, tmp_path)
+    assert path.suffix == ".yaml" and (tmp_path / path.name.replace(".yaml", ".obj")).exists()
+    a, b = load_scene(ref), load_scene(path)
+    assert np.allclose(a.full_mesh.bounds, b.full_mesh.bounds, atol=1e-4)
+    d, _ = cKDTree(a.gt_points).query(b.gt_points)
+    assert np.quantile(d, 0.99) < 3e-3 and abs(len(a.gt_points) - len(b.gt_points)) < 0.05 * len(a.gt_points)
