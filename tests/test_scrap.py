@@ -1,7 +1,7 @@
 """The scrap generator: every family builds a closed piece on the floor, in reach, with its line painted
 on it; the same reference gives the same piece; a piece kept as a scene file loads back the same.
 
-Tests of: sim.scenes.scrap (and the scrap: reference of sim.scenes.load_scene).
+Tests of: sim.scenes.scrap, sim.scenes (its scrap: references).
 """
 
 from __future__ import annotations
