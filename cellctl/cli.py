@@ -74,6 +74,24 @@ def _replay(args: argparse.Namespace) -> int:
     return 0 if result.error is None else 1
 
 
+def _scene(args: argparse.Namespace) -> int:
+    from sim.scenes.scrap import parse_ref, scrap_refs, write_scene_file
+
+    if args.scene_cmd == "write":
+        bad = [r for r in args.refs if parse_ref(r) is None]
+        if bad:
+            raise ValueError(f"not a generated piece: {', '.join(map(repr, bad))} (write scrap:<gen_seed>:<index>)")
+        for ref in args.refs:
+            path = write_scene_file(ref, args.out)
+            print(f"{ref} -> {path} (load it with --scene {path})")
+        return 0
+    from cellctl.bench.scrap_sheet import write_sheet
+
+    refs = args.refs or scrap_refs(args.count, args.gen_seed)
+    print(f"{len(refs)} pieces -> {write_sheet(refs, args.out, cols=args.cols)}")
+    return 0
+
+
 def _bench(args: argparse.Namespace) -> int:
     from cellctl.bench.scans import cli_bench
 
@@ -385,6 +403,21 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--report", default=None, metavar="BENCH_JSON",
                    help="only rewrite bench.md and the plots next to this bench.json, no scans")
     b.set_defaults(func=_bench)
+
+    sc = sub.add_parser("scene", help="generated scrap pieces (scrap:<gen_seed>:<index>, docs/SCENES.md): keep one "
+                                      "as a scene file, or draw a sheet of them")
+    scsub = sc.add_subparsers(dest="scene_cmd", required=True)
+    sw = scsub.add_parser("write", help="write generated pieces as scene files (<name>.yaml beside <name>.obj), "
+                                        "e.g. to keep a failing piece as a regression test")
+    sw.add_argument("refs", nargs="+", metavar="REF", help="generated pieces, e.g. scrap:0:17")
+    sw.add_argument("--out", required=True, help="folder for the .yaml and .obj files")
+    ss = scsub.add_parser("sheet", help="a PNG sheet of generated pieces, paint in red")
+    ss.add_argument("refs", nargs="*", metavar="REF", help="pieces to draw (default: the first --count of --gen-seed)")
+    ss.add_argument("--count", type=int, default=12, help="without REFs: how many pieces (default: 12)")
+    ss.add_argument("--gen-seed", type=int, default=0, help="without REFs: the generator's seed (default: 0)")
+    ss.add_argument("--cols", type=int, default=4, help="panels per row (default: 4)")
+    ss.add_argument("--out", required=True, help="the PNG to write")
+    sc.set_defaults(func=_scene)
 
     sv = sub.add_parser("serve", help="run the cell-controller service: the job API over Zenoh (docs/API.md)",
                         description="Runs until SIGINT/SIGTERM; the running job is then interrupted (partial "

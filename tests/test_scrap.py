@@ -89,3 +89,21 @@ def test_a_piece_kept_as_a_scene_file_loads_back_the_same(tmp_path):
     assert np.allclose(a.full_mesh.bounds, b.full_mesh.bounds, atol=1e-4)
     d, _ = cKDTree(a.gt_points).query(b.gt_points)
     assert np.quantile(d, 0.99) < 3e-3 and abs(len(a.gt_points) - len(b.gt_points)) < 0.05 * len(a.gt_points)
+
+
+def test_cli_keeps_a_piece_as_a_scene_file_and_draws_a_sheet(tmp_path, capsys):
+    """`cellctl scene write` and `cellctl scene sheet` (cellctl.bench.scrap_sheet); a bad reference writes nothing."""
+    from PIL import Image
+
+    from cellctl.cli import main
+
+    assert main(["scene", "write", "scrap:0:x", "--out", str(tmp_path / "bad")]) == 2
+    assert not (tmp_path / "bad").exists()
+    assert main(["scene", "write", FIRST[7], "--out", str(tmp_path)]) == 0
+    (yaml_path,) = tmp_path.glob("*.yaml")
+    assert np.allclose(load_scene(yaml_path).full_mesh.bounds, load_scene(FIRST[7]).full_mesh.bounds, atol=1e-4)
+    png = tmp_path / "sheet.png"
+    assert main(["scene", "sheet", FIRST[7], FIRST[11], "--cols", "2", "--out", str(png)]) == 0
+    img = np.asarray(Image.open(png).convert("RGB")).astype(float) / 255
+    red = (img[..., 0] > 0.6) & (img[..., 1] < 0.3) & (img[..., 2] < 0.3)
+    assert red.sum() > 200  # the paint shows
