@@ -107,3 +107,13 @@ def test_cli_keeps_a_piece_as_a_scene_file_and_draws_a_sheet(tmp_path, capsys):
     img = np.asarray(Image.open(png).convert("RGB")).astype(float) / 255
     red = (img[..., 0] > 0.6) & (img[..., 1] < 0.3) & (img[..., 2] < 0.3)
     assert red.sum() > 200  # the paint shows
+
+
+def test_no_line_is_squeezed_to_nothing():
+    """A hundred pieces drawn (not built): no line squeezed into a small patch (scrap:0:25, an elbow, drew
+    a 1 mm line)."""
+    from sim.scenes.scrap import MIN_LINE_M
+
+    for ref in scrap_refs(100, 0):
+        _, bp, meta = generate(*parse_ref(ref))
+        assert meta["length_m"] >= MIN_LINE_M, (ref, meta)

@@ -33,6 +33,8 @@ SHOULDER = np.array([0.0, 0.0, 0.333])  # the Panda's shoulder, base frame
 REACH_M = 0.64  # every line point within this of the shoulder (the built-in scenes: 0.65)
 BASE_CLEAR_M = 0.2  # no part of the piece within this of the robot's base axis
 MIN_TIP_DEG = 15.0  # the sharpest zigzag tip drawn
+MIN_LINE_M = 0.08  # the shortest line drawn (all its strokes)
+END_MARGIN_M = 0.022  # a drawn line keeps this far inside its face's patch: half the widest spray and 8 mm
 
 
 def scrap_ref(gen_seed: int, index: int) -> str:
@@ -466,10 +468,18 @@ def _dense(p: np.ndarray, step: float = 0.002) -> np.ndarray:
 
 
 def _fit(strokes: list[np.ndarray], chart: Chart, rng, margin: float = 0.0) -> list[np.ndarray]:
-    """Scale the strokes down (never up) to fit the chart's patch and place them at random in it."""
+    """Scale the strokes down (never up) to fit the chart's patch, turned a quarter where that keeps more
+    of them, and place them at random in it."""
+    extent = np.array([chart.u[1] - chart.u[0], chart.v[1] - chart.v[0]])
     allp = np.vstack(strokes)
+    size0 = np.maximum(allp.max(0) - allp.min(0), 1e-6)
+    if min(extent / size0) < min(extent / size0[::-1]):  # it keeps more of its length turned a quarter
+        strokes = [p @ np.array([[0.0, 1.0], [-1.0, 0.0]]) for p in strokes]
+        allp = np.vstack(strokes)
     lo, hi = allp.min(0), allp.max(0)
-    box = np.array([chart.u[1] - chart.u[0], chart.v[1] - chart.v[0]]) - 2 * margin
+    extent = np.array([chart.u[1] - chart.u[0], chart.v[1] - chart.v[0]])
+    margin = np.minimum(margin, 0.25 * extent)  # a small patch keeps half of itself for the line
+    box = extent - 2 * margin
     size = np.maximum(hi - lo, 1e-6)
     k = float(min(1.0, *(box / size)))
     strokes = [(p - lo) * k for p in strokes]
@@ -524,8 +534,8 @@ def draw_line(kind: str, chart: Chart, rng) -> tuple[list[np.ndarray], dict]:
         # across the profile: from one v to another, crossing at least one corner
         e = np.array(chart.edges_v) if chart.edges_v else np.array([(chart.v[0] + chart.v[1]) / 2])
         c = float(rng.choice(e))
-        v0 = max(chart.v[0] + 0.01, c - rng.uniform(0.06, 0.2))
-        v1 = min(chart.v[1] - 0.01, c + rng.uniform(0.06, 0.2))
+        v0 = max(chart.v[0] + END_MARGIN_M, c - rng.uniform(0.06, 0.2))
+        v1 = min(chart.v[1] - END_MARGIN_M, c + rng.uniform(0.06, 0.2))
         u0 = rng.uniform(chart.u[0] + 0.05 * du, chart.u[1] - 0.05 * du)
         slant = rng.uniform(-0.5, 0.5) * (v1 - v0)
         strokes = [np.array([[u0, v0], [u0 + slant, v1]])]
@@ -566,7 +576,9 @@ def draw_line(kind: str, chart: Chart, rng) -> tuple[list[np.ndarray], dict]:
             strokes.append(o + np.array([[0, 0], [L * np.cos(a), L * np.sin(a)]]))
     else:
         raise ValueError(f"unknown line kind {kind!r}: use one of {', '.join(LINE_KINDS)}")
-    return [_dense(p) for p in _fit(strokes, chart, rng)], info
+    # ends kept a half spray width and more inside the patch: a line that stops within half a width of an
+    # edge sprays paint to the edge, and nobody (the cell included) can tell whether it meant to run off
+    return [_dense(p) for p in _fit(strokes, chart, rng, margin=END_MARGIN_M)], info
 
 
 # --- placing the piece --------------------------------------------------------------------------
@@ -616,8 +628,11 @@ def generate(gen_seed: int, index: int) -> tuple[str, Blueprint, dict]:
     mesh, chart, params, max_offset = FAMILIES[family](rng)
     kinds = [k for k in _FAMILY_LINES[family] if k != "round" or chart.round_v is not None]
     kind = str(rng.choice(kinds))
-    strokes, info = draw_line(kind, chart, rng)
-    lines = [chart.point(p) for p in strokes]
+    for _ in range(20):  # a line squeezed into a small patch (a short elbow) is drawn again
+        strokes, info = draw_line(kind, chart, rng)
+        lines = [chart.point(p) for p in strokes]
+        if sum(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in lines) >= MIN_LINE_M:
+            break
     # a line off the chart's face (past the end of a pipe, off a plate) is pulled onto the mesh by the
     # painter; points nudged 1 mm outward from the face would be no better, so they are left as drawn
     width = float(rng.uniform(0.016, 0.028))
