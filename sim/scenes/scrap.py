@@ -615,6 +615,15 @@ def _place(mesh: trimesh.Trimesh, lines: list[np.ndarray], rng, tries: int = 60)
 
 # --- the generator ------------------------------------------------------------------------------
 
+def _ends_clear(strokes: list[np.ndarray], chart: Chart) -> bool:
+    """No stroke ends within ``END_MARGIN_M`` of a corner of the profile: its paint would wrap over the
+    edge, and where the worker meant the line to stop could not be told."""
+    if not chart.edges_v:
+        return True
+    ends_v = np.array([p[[0, -1], 1] for p in strokes]).ravel()
+    return bool(np.abs(ends_v[:, None] - np.asarray(chart.edges_v)[None, :]).min() >= END_MARGIN_M)
+
+
 def _family_of(gen_seed: int, index: int) -> str:
     """Families in turn, in an order shuffled by the generator seed: every family in each run of 13."""
     order = np.random.default_rng([int(gen_seed), 7919]).permutation(len(FAMILY_NAMES))
@@ -628,10 +637,11 @@ def generate(gen_seed: int, index: int) -> tuple[str, Blueprint, dict]:
     mesh, chart, params, max_offset = FAMILIES[family](rng)
     kinds = [k for k in _FAMILY_LINES[family] if k != "round" or chart.round_v is not None]
     kind = str(rng.choice(kinds))
-    for _ in range(20):  # a line squeezed into a small patch (a short elbow) is drawn again
+    for _ in range(20):  # a line squeezed into a small patch (a short elbow), or ending at an edge, is drawn again
         strokes, info = draw_line(kind, chart, rng)
         lines = [chart.point(p) for p in strokes]
-        if sum(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in lines) >= MIN_LINE_M:
+        if (sum(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in lines) >= MIN_LINE_M
+                and _ends_clear(strokes, chart)):
             break
     # a line off the chart's face (past the end of a pipe, off a plate) is pulled onto the mesh by the
     # painter; points nudged 1 mm outward from the face would be no better, so they are left as drawn
