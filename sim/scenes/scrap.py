@@ -637,12 +637,17 @@ def generate(gen_seed: int, index: int) -> tuple[str, Blueprint, dict]:
     mesh, chart, params, max_offset = FAMILIES[family](rng)
     kinds = [k for k in _FAMILY_LINES[family] if k != "round" or chart.round_v is not None]
     kind = str(rng.choice(kinds))
-    for _ in range(20):  # a line squeezed into a small patch (a short elbow), or ending at an edge, is drawn again
+    best = None  # a line squeezed into a small patch (a short elbow), or ending at an edge, is drawn again
+    for _ in range(20):
         strokes, info = draw_line(kind, chart, rng)
         lines = [chart.point(p) for p in strokes]
-        if (sum(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in lines) >= MIN_LINE_M
-                and _ends_clear(strokes, chart)):
+        long = sum(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in lines) >= MIN_LINE_M
+        rank = 2 * long + _ends_clear(strokes, chart)
+        if best is None or rank > best[0]:
+            best = (rank, strokes, info, lines)
+        if rank == 3:
             break
+    _, strokes, info, lines = best
     # a line off the chart's face (past the end of a pipe, off a plate) is pulled onto the mesh by the
     # painter; points nudged 1 mm outward from the face would be no better, so they are left as drawn
     width = float(rng.uniform(0.016, 0.028))
