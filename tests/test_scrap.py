@@ -67,7 +67,7 @@ def test_line_is_painted_on_the_surface_within_reach(piece):
     assert np.quantile(d, 0.99) < scene.drawing_width / 2 + 4e-3, ref
 
 
-def test_dashes_leave_bare_metal_between_them():
+def test_dashes_leave_bare_metal_between_them(tmp_path):
     """The gap between dashes is wider than the spray: the paint falls in one island per dash (the cut
     bridged gaps of 15-30 mm that the spray had closed)."""
     for ref in scrap_refs(40, 0):
@@ -77,6 +77,7 @@ def test_dashes_leave_bare_metal_between_them():
     else:
         pytest.fail("no dashed line in the first 40 pieces")
     scene = load_scene(ref)
+    assert load_scene(write_scene_file(ref, tmp_path)).drawing_polylines  # no dash shorter than the file allows
     islands = trimesh.graph.connected_components(scene.paint_mesh.face_adjacency, min_len=1)
     assert len(islands) >= meta["strokes"] >= 2, (ref, meta)
 

@@ -34,6 +34,7 @@ REACH_M = 0.64  # every line point within this of the shoulder (the built-in sce
 BASE_CLEAR_M = 0.2  # no part of the piece within this of the robot's base axis
 MIN_TIP_DEG = 15.0  # the sharpest zigzag tip drawn
 MIN_LINE_M = 0.08  # the shortest line drawn (all its strokes)
+DASH_MIN_M = 0.03  # the shortest dash: longer than the widest spray (a scene file refuses a stroke under its width)
 END_MARGIN_M = 0.022  # a drawn line keeps this far inside its face's patch: half the widest spray and 8 mm
 
 
@@ -557,7 +558,8 @@ def draw_line(kind: str, chart: Chart, rng) -> tuple[list[np.ndarray], dict]:
         dash, gap = rng.uniform(0.04, 0.08), rng.uniform(0.045, 0.07)
         phase = np.mod(s, dash + gap) < dash
         cuts = np.flatnonzero(np.diff(phase.astype(int)) != 0) + 1
-        strokes = [p for p, on in zip(np.split(base, cuts), np.split(phase, cuts)) if on[0] and len(p) > 2]
+        strokes = [p for p, on in zip(np.split(base, cuts), np.split(phase, cuts))  # a dash cut short at the end:
+                   if on[0] and len(p) > 2 and _arc(p)[-1] >= DASH_MIN_M]  # kept only if longer than any spray
         info.update(dash_m=round(float(dash), 3), gap_m=round(float(gap), 3))
     elif kind == "crossing":
         L1, L2 = rng.uniform(0.2, 0.35), rng.uniform(0.15, 0.3)

@@ -1,0 +1,69 @@
+"""The cut's line on generated pieces that once failed, planned from the truth (the cut oracle's inputs:
+the twin's true paint and true surface; ``build_cut_path`` only, no IK): every point of every branch within
+5 mm of the true line, the worker's line, not the paint's rim.
+
+Tests of: planners.cutpath.geometry (end caps), planners.cutpath.plan, cellctl.bench.cut_oracle (true_surface).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from cellctl.bench.cut_oracle import true_surface
+from planners.clouds import Cloud
+from planners.config import load_planners_config
+from planners.cutpath import build_cut_path
+from sim.scenes import load_scene
+
+REPO = Path(__file__).resolve().parents[1]
+CASES = [
+    # lines that once ended within half a spray width of an edge (the generator keeps ends clear now)
+    "scrap:0:4", "scrap:0:7", "scrap:0:15", "scrap:0:20",
+    # three dashes round an elbow (scrap:0:12 as generated at cb983bc, its last dash, shorter than the spray,
+    # left out): a broken line goes to the voxel skeleton, whose gap closing and thinning join two dashes
+    # into one stroke across 20 mm of bare metal, 16 mm off the line. Known, not fixed yet.
+    pytest.param("tests/data/scrap/dashed-elbow.yaml", marks=pytest.mark.xfail(
+        strict=True, reason="the skeleton of a broken line joins two dashes across bare metal")),
+]
+
+
+@pytest.mark.parametrize("ref", CASES)
+def test_the_line_cut_from_the_truth_stays_on_the_line(ref):
+    scene = load_scene(REPO / ref if ref.endswith(".yaml") else ref)
+    cfg = load_planners_config(REPO / "configs" / "planners.yaml").cutpath
+    paint = Cloud(scene.gt_points.astype(np.float32), np.zeros((len(scene.gt_points), 3), np.uint8))
+    path = build_cut_path(paint, true_surface(scene.full_mesh), cfg,
+                          viewpoint=scene.initial_view_candidates[0][:3, 3])
+    assert path.branches, ref
+    line = cKDTree(np.vstack(scene.drawing_polylines))
+    worst = max(float(line.query(b.points)[0].max()) for b in path.branches)
+    assert worst <= 5e-3, f"{ref}: a branch runs {1e3 * worst:.1f} mm off the true line"
+
+
+@pytest.mark.xfail(strict=True, reason="known: the end cap's probe goes along a chord and leaves the curved metal "
+                   "(7.8 mm past the end here; 8.5 mm on scrap:0:12 at cb983bc); following the surface at the end "
+                   "fixes it but takes half a width off each cut across a thin rod (test_cut_ladder)")
+def test_a_stroke_ending_round_a_pipe_stops_half_a_width_before_its_paint():
+    """A stroke round a pipe of 50 mm radius (the elbows' smallest), its paint an 18 mm band with a round cap at each end, its line
+    found 2 mm short of each end (as the outline's core is): the end cap must find the metal going on past
+    the paint (the probe follows the surface at the end, not a chord that leaves the curved metal) and end
+    the line at the cap's centre, not at the paint's rim 8 mm beyond."""
+    from planners.cutpath.geometry import end_caps
+
+    r, half = 0.05, 0.009
+    th = np.linspace(-0.4, 0.4, 200)  # 40 mm: a dash, shorter than three spray widths
+    x = np.linspace(-0.1, 0.1, 101)
+    X, T = np.meshgrid(x, np.linspace(-np.pi, np.pi, int(2 * np.pi * r / 0.002)))
+    metal = np.column_stack([X.ravel(), r * np.sin(T.ravel()), r * np.cos(T.ravel())])
+    line = np.column_stack([np.zeros_like(th), r * np.sin(th), r * np.cos(th)])
+    paint = metal[cKDTree(line).query(metal)[0] <= half]
+    found = line[(np.abs(th) <= 0.4 - 0.002 / r)][::8]
+    normals = found / np.linalg.norm(found, axis=1, keepdims=True)
+    normals[:, 0] = 0.0
+    out = end_caps(found, paint, cKDTree(metal), half, 0.005, normals=normals)
+    for end, true in ((out[0], line[0]), (out[-1], line[-1])):
+        assert np.linalg.norm(end - true) < 2.5e-3, f"the end lands {1e3 * np.linalg.norm(end - true):.1f} mm from the line's end"
