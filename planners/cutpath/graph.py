@@ -52,18 +52,6 @@ class DrawingGraph:
         return a == b and self.kinds[a] == LOOP
 
 
-def merge_graphs(graphs: list[DrawingGraph], voxel_m: float) -> DrawingGraph:
-    """One graph of several drawn apart (a broken line's pieces of paint, each its own skeleton)."""
-    nodes, kinds, branches, ends, base = [], [], [], [], 0
-    for g in graphs:
-        nodes.append(g.nodes.reshape(-1, 3))
-        kinds += list(g.kinds)
-        branches += list(g.branches)
-        ends += [(a + base, b + base) for a, b in g.ends]
-        base += len(g.kinds)
-    return DrawingGraph(np.vstack(nodes) if nodes else np.zeros((0, 3)), kinds, branches, ends, voxel_m)
-
-
 def polyline_length(p: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if len(p) > 1 else 0.0
 

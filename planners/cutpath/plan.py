@@ -13,7 +13,7 @@ from planners.cutpath import _checks
 from planners.cutpath.config import CutPathConfig
 from planners.cutpath.geometry import (Surface, arc_length, band_half_width, center_on_paint, end_caps, on_surface,
                                       pivots, smooth_resample, torch_poses)
-from planners.cutpath.graph import END, JUNCTION, LOOP, curve_graph, drawing_graph, merge_graphs, through_junctions
+from planners.cutpath.graph import END, JUNCTION, LOOP, curve_graph, drawing_graph, through_junctions
 from planners.cutpath.outline import line_core
 from planners.cutpath.ladder import (COLLISION, IK_ITERATIONS, RECONFIGURE, Rungs, cut_spline, every_degree,
                                      plan_ladder, reversal_permutation, solve_rungs, tilt_directions)
@@ -39,8 +39,6 @@ IsFree = Callable[[np.ndarray], np.ndarray]
 IN_FRONT_NEIGHBOURS = 12
 #: the paint is one line (not broken) when one piece of it holds this share
 UNBROKEN_SHARE = 0.8
-#: a piece of a broken line's paint with fewer points than this is no dash (pieces.py's floor)
-MIN_PART_POINTS = 10
 
 
 def torch_kinematics(urdf_path: str, cfg: CutPathConfig | None = None, *,
@@ -141,24 +139,6 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
 
 
 
-def _a_dash(part: np.ndarray, surf: Surface, voxel_m: float) -> bool:
-    """A piece of paint that is a stroke of its own (a dash), not the spray's footprint on a bar: longer
-    than twice its width, with metal on both of its long sides. Paint on a bar of a grating is long
-    across the bar, but beside it there is the gap between the bars; its line crosses it (pieces.py)."""
-    c = part.mean(axis=0)
-    _, sv, vt = np.linalg.svd(part - c, full_matrices=False)
-    along = part - c
-    length, width = np.ptp(along @ vt[0]), np.ptp(along @ vt[1])
-    if length < 2.0 * width:
-        return False
-    c0 = part[np.argmin(np.linalg.norm(part - c, axis=1))]  # on the metal (a dash round a pipe: c is inside it)
-    n = surf.normals(c0[None])[0]
-    across = vt[1] - (vt[1] @ n) * n
-    side = (0.5 * width + 2.0 * voxel_m) * across / max(float(np.linalg.norm(across)), 1e-12)
-    d = surf.tree.query(np.vstack([c0 + side, c0 - side]), distance_upper_bound=1.5 * voxel_m)[0]
-    return bool(np.isfinite(d).all())
-
-
 def _broken(d_xyz: np.ndarray, cfg: CutPathConfig) -> bool:
     """A broken line (paint only where the spray met a bar, a dashed line): no one piece of paint holds
     ``UNBROKEN_SHARE`` of it. Its pieces' outlines are mostly the bars' sides, not the line moved
@@ -171,9 +151,8 @@ def _line_graph(d_xyz: np.ndarray, surf: Surface, cfg: CutPathConfig):
     """(the drawing's graph, the paint its corners are fitted to, the band's half width or None): from
     the paint's outline moved onto its line (``outline.py``: sharp tips kept, no chord through merged
     paint; its corners fitted to the line's core, its half width measured between the outline's
-    sides); for a broken line, each of its dashes (``_a_dash``) from its own outline; or, with
-    ``cfg.line_from`` "skeleton" or where the outline gives no line, the voxel skeleton of the whole
-    paint (then centred on the paint, its half width measured across it)."""
+    sides), or, with ``cfg.line_from`` "skeleton" or where the outline gives no line, the voxel
+    skeleton of the whole paint (then centred on the paint, its half width measured across it)."""
     if cfg.line_from == "outline" and not _broken(d_xyz, cfg):
         metal = surf.tree if surf.name != "drawing" else None  # bare metal beside the paint, where there is a surface
         core, o = line_core(d_xyz, surf.normals(d_xyz), metal)
@@ -181,23 +160,6 @@ def _line_graph(d_xyz: np.ndarray, surf: Surface, cfg: CutPathConfig):
             g = curve_graph(o.line, min_branch_m=cfg.min_branch_m, paint=cKDTree(d_xyz), bridge_m=6.0 * o.half_width_m)
             if g.branches:
                 return g, core, o.half_width_m
-    if cfg.line_from == "outline" and _broken(d_xyz, cfg):
-        # each dash its own line, from its own outline: one skeleton of all the paint closed gaps and carried
-        # ends across bare metal to the next dash (two dashes of an elbow joined 16 mm off the line); the
-        # paint on a grating's bars is no dash: on no line, pieces.py cuts it
-        graphs, cores, halves = [], [], []
-        metal = surf.tree if surf.name != "drawing" else None
-        for part in paint_parts(d_xyz, 2.0 * cfg.voxel_m):  # a few dozen pieces at most
-            if len(part) >= MIN_PART_POINTS and _a_dash(d_xyz[part], surf, cfg.voxel_m):
-                core, o = line_core(d_xyz[part], surf.normals(d_xyz[part]), metal)
-                if len(o.line) and core is not d_xyz[part]:
-                    g = curve_graph(o.line, min_branch_m=cfg.min_branch_m)
-                    if g.branches:
-                        graphs.append(g)
-                        cores.append(core)
-                        halves.append(o.half_width_m)
-        if graphs:
-            return merge_graphs(graphs, cfg.voxel_m), np.vstack(cores), float(np.median(halves))
     return (drawing_graph(d_xyz, cfg.voxel_m, cfg.min_branch_m, cfg.closing_iterations, surface=surf.xyz), d_xyz,
             None)
 
