@@ -18,19 +18,38 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
-class ColorFilter(_Strict):
-    """ξ of §IV-B: the admissible HSV range of the paint (hue wraps at 360 degrees)."""
+Lab3 = tuple[float, float, float]
 
-    hue_center_deg: float = Field(0.0, ge=0, lt=360)
-    hue_halfwidth_deg: float = Field(20.0, gt=0, le=180)
-    s_min: float = Field(0.5, ge=0, le=1)
-    v_min: float = Field(0.15, ge=0, le=1)
 
-    def mask(self, rgb: np.ndarray) -> np.ndarray:
-        """Which of the (N, 3) uint8 colours are paint (``planners.clouds.color_mask`` with this range)."""
-        from planners.clouds import color_mask
+class PaintColor(_Strict):
+    """The yard's marking paint as commissioned (``cellctl calibrate paint``): its colour in CIELAB as a
+    sample showed it, and the limits of the check that runs on every piece (planners.paint_color)."""
 
-        return color_mask(rgb, self.hue_center_deg, self.hue_halfwidth_deg, self.s_min, self.v_min)
+    name: str = Field("red", min_length=1, max_length=40, description="what the operator calls it")
+    lab_mean: Lab3 = Field((45.2, 69.4, 55.6), description="L* a* b* (D65) of the paint, lit as in the sample")
+    lab_cov: tuple[Lab3, Lab3, Lab3] = Field(((11.4, 11.3, 9.1), (11.3, 21.4, 14.0), (9.1, 14.0, 15.2)),
+                                             description="its covariance: the sample's shading and texture")
+    gate_d2: float = Field(16.3, gt=0, le=400, description="a colour farther than this (squared Mahalanobis) from "
+                           "the fitted paint is not paint, whatever else it is (chi-square, 3 dof, 0.999)")
+    min_delta_e: float = Field(15.0, ge=1, le=100, description="paint and metal closer than this (CIE76) on a piece: "
+                               "refused, paint_not_separable")
+    warn_delta_e: float = Field(25.0, ge=1, le=100, description="closer than this: done with a warning")
+    max_share: float = Field(0.3, gt=0, le=1, description="paint covering more of the piece in the initial view "
+                             "is the metal taken for paint: refused")
+    max_band_m: float = Field(0.08, gt=0, le=1, description="paint wider than this is no sprayed line: refused")
+    min_paint_points: int = Field(50, ge=1, description="fewer paint points in the initial view: no paint there")
+    piece_above_m: float = Field(0.005, ge=0, le=0.5, description="points higher than this over the table (the "
+                                 "grid's floor) are the piece the colours are fitted on")
+    source: str = Field("default", max_length=200, description="where the model came from (a calibration's date)")
+
+    @model_validator(mode="after")
+    def _cov(self) -> "PaintColor":
+        c = np.asarray(self.lab_cov, dtype=np.float64)
+        if not np.allclose(c, c.T, atol=1e-6) or np.linalg.eigvalsh(c).min() <= 0:
+            raise ValueError("lab_cov must be a symmetric positive-definite 3x3 matrix")
+        if self.warn_delta_e < self.min_delta_e:
+            raise ValueError(f"warn_delta_e ({self.warn_delta_e}) must be at least min_delta_e ({self.min_delta_e})")
+        return self
 
 
 class GridConfig(_Strict):
@@ -292,12 +311,21 @@ class CutPathConfig(_Strict):
 
 class PlannersConfig(_Strict):
     grid: GridConfig = GridConfig()
-    color: ColorFilter = ColorFilter()
+    paint: PaintColor = PaintColor()
     nbv: NBVConfig = NBVConfig()
     enpv: ENVPConfig = ENVPConfig()
     max_steps: int = Field(16, ge=1, le=200, description="views per scan at most, initial one included")
     coverage_voxel_m: float = Field(0.01, gt=0.001, le=0.1)
     cutpath: CutPathConfig = CutPathConfig()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_hsv(cls, data):
+        if isinstance(data, dict) and "color" in data:
+            raise ValueError("`color:` (the fixed HSV paint filter) is gone: the paint is a colour model in CIELAB "
+                             "under `paint:` (planners.config.PaintColor), commissioned with `cellctl calibrate "
+                             "paint`; delete the `color:` block")
+        return data
 
 
 class ConfigError(ValueError):

@@ -31,6 +31,7 @@ from configs.panda import (BASE_LINK, FLANGE_LINK, JOINT_NAMES, PANDA_MAX_ACCELE
                            PANDA_MAX_TORQUE, PANDA_MAX_VELOCITY, PANDA_URDF)
 from drivers.interfaces import (Arm, ArmModel, ContactLog, DeviceError, Intrinsics, JointTrajectory, MotionLog,
                                 RGBDCamera, RGBDFrame, TrajectoryError)
+from sim.appearance import Painter
 from sim.config import TwinConfig
 from sim.d435 import apply_depth_noise, grazing_mask, intrinsics_for
 from sim.faults import FaultyArm, FaultyCamera, place_out_of_reach
@@ -418,7 +419,10 @@ class TwinCamera(RGBDCamera):
         self.far_m: float = max(4.0, 2.0 * self._cfg.max_range_m)
         self._proj = projection_matrix(self.intrinsics, NEAR_M, self.far_m).T.ravel().tolist()
         self._rng = np.random.default_rng(self._cfg.seed)
+        self._color_rng = np.random.default_rng(self._cfg.seed + 1)  # apart from the depth noise's
         self.last_truth: np.ndarray | None = None
+        self.painter: Painter | None = None  # the scene's appearance (sim.appearance), None: flat colours
+        self.painter_ids: dict[str, int | None] = {}
 
     def capture(self) -> RGBDFrame:
         """Render a frame from the arm's current camera_pose(). Blocks for the render (~0.15-0.25 s at 848x480)."""
@@ -445,15 +449,19 @@ class TwinCamera(RGBDCamera):
         K = self.intrinsics
         with self._sim.lock:
             self._sim.check()
-            _, _, rgba, zbuf, _ = p.getCameraImage(
+            _, _, rgba, zbuf, seg = p.getCameraImage(
                 K.width, K.height, viewMatrix=view_matrix(T).T.ravel().tolist(), projectionMatrix=self._proj,
-                renderer=p.ER_TINY_RENDERER, flags=p.ER_NO_SEGMENTATION_MASK,
+                renderer=p.ER_TINY_RENDERER, flags=0 if self.painter is not None else p.ER_NO_SEGMENTATION_MASK,
                 lightDirection=LIGHT_DIRECTION, physicsClientId=self._sim.client, **LIGHT)
         color = np.ascontiguousarray(np.asarray(rgba, dtype=np.uint8).reshape(K.height, K.width, 4)[..., :3])
         zbuf = np.asarray(zbuf, dtype=np.float64).reshape(K.height, K.width)
         n, f = NEAR_M, self.far_m
         z = f * n / (f - (f - n) * zbuf)
         z[z > 0.999 * f] = np.nan  # cleared depth buffer: nothing hit
+        if self.painter is not None:
+            seg = np.asarray(seg, dtype=np.int64).reshape(K.height, K.width)
+            color = self.painter.shade(color, z, seg, self.K, T, self.painter_ids, np.asarray(LIGHT_DIRECTION),
+                                       self._color_rng)
         return color, z.astype(np.float32)
 
     def sensor_depth(self, raw: np.ndarray) -> np.ndarray:
@@ -536,6 +544,10 @@ class Twin:
             sim.T_flange_tool = self.config.tool.T_flange_tip()
         self.arm = TwinArm(sim, self.config)
         self.camera = TwinCamera(sim, self.arm, self.config)
+        if self.scene.appearance is not None:
+            self.camera.painter = Painter(self.scene.appearance, self.scene.drawing_polylines, self.scene.drawing_width,
+                                          self.scene.object_rgb, self.scene.paint_rgb)
+            self.camera.painter_ids = {"object": self.object_id, "paint": self.paint_id}
         faults = self.config.faults
         if faults.arm.active:
             self.arm = FaultyArm(self.arm, faults.arm)

@@ -95,7 +95,7 @@ def test_the_twins_own_frames_lose_thin_rods_silhouettes_that_a_mesh_cast_keeps(
     cast = TrueViews(scene.full_mesh.vertices, scene.full_mesh.faces, scene.gt_points, 0.01, cam)
     seen_cast = cast.seen(T0[:3, 3], T0[:3, 3] + T0[:3, 2])
     with Twin(scene, cfg.twin.model_copy(update={"camera": cam})) as twin:
-        tv = TwinViews(twin, scene.gt_points, 0.01, pcfg.color)
+        tv = TwinViews(twin, scene.gt_points, 0.01, pcfg, T0)
         seen = tv.seen_pose(T0)
         away = T0.copy()
         away[:3, :3] = T0[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # turned round: the sky

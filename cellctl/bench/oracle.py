@@ -33,7 +33,8 @@ from scipy.stats import spearmanr
 from cellctl.bench.scoring import gnbv_states
 from cellctl.config import CellConfig, MotionConfig
 from cellctl.scan.cut import torch_shape
-from planners.clouds import color_mask, frame_to_base_cloud, voxel_keys
+from planners.clouds import frame_to_base_cloud, voxel_keys
+from planners.paint_color import PaintSegmenter
 from planners.config import PlannersConfig
 from planners.gnbv import GuidedNBV
 from planners.motion.collision import CollisionChecker, RobotCollisionModel
@@ -191,15 +192,23 @@ class TwinViews:
     planners' paint filter. Thin stock loses its silhouette to the discontinuity rule, which a
     mesh cast does not model: on the basket this is what bounds coverage."""
 
-    def __init__(self, twin: Twin, gt: np.ndarray, voxel: float, color) -> None:
-        self.twin, self.color, self.voxel = twin, color, voxel
+    def __init__(self, twin: Twin, gt: np.ndarray, voxel: float, pcfg, T0: np.ndarray) -> None:
+        self.twin, self.voxel = twin, voxel
         self.keys = np.unique(voxel_keys(np.asarray(gt, dtype=np.float64), voxel))
+        # the paint's colour fitted on the initial view, as a scan fits it
+        self.paint = PaintSegmenter(pcfg.paint)
+        cloud = self._cloud(T0)
+        piece = cloud.xyz[:, 2] > pcfg.grid.lo_m[2] + pcfg.paint.piece_above_m
+        self.paint.fit(cloud.rgb[piece], cloud.xyz[piece])
+
+    def _cloud(self, T: np.ndarray):
+        cam = self.twin.camera
+        rgb, raw = cam.render(T)
+        return frame_to_base_cloud(rgb, cam.sensor_depth(raw), cam.K, T)
 
     def seen_pose(self, T: np.ndarray) -> np.ndarray:
-        cam, c = self.twin.camera, self.color
-        rgb, raw = cam.render(T)
-        cloud = frame_to_base_cloud(rgb, cam.sensor_depth(raw), cam.K, T)
-        paint = color_mask(cloud.rgb, c.hue_center_deg, c.hue_halfwidth_deg, c.s_min, c.v_min)
+        cloud = self._cloud(T)
+        paint = self.paint.mask(cloud.rgb)
         return np.isin(self.keys, np.unique(voxel_keys(cloud.xyz[paint], self.voxel)))
 
 
@@ -307,7 +316,7 @@ def measure(cfg: CellConfig, pcfg: PlannersConfig, scenes: list[str], views: int
             first = first_step(tv, gnbv_states(cfg, pcfg, name)[0], pcfg)
         else:
             with Twin(scene, twin_cfg) as twin:
-                tv = TwinViews(twin, scene.gt_points, voxel, pcfg.color)
+                tv = TwinViews(twin, scene.gt_points, voxel, pcfg, T0)
                 S = np.array([tv.seen_pose(T) for T in poses], dtype=bool).reshape(len(poses), -1)
                 start = tv.seen_pose(T0)
             first = None

@@ -58,3 +58,12 @@ def save_png(path: Path, rgb: np.ndarray) -> None:
     import matplotlib.pyplot as plt
 
     plt.imsave(path, rgb)
+
+
+def paint_overlay(rgb: np.ndarray, paint: np.ndarray) -> np.ndarray:
+    """The camera image with what the cell took as paint in cyan over the rest in dim grey: what an
+    operator checks when a piece is refused (or a cut looks wrong)."""
+    grey = rgb.astype(np.float32).mean(axis=2, keepdims=True) * 0.45
+    out = np.repeat(grey, 3, axis=2)
+    out[paint] = 0.3 * rgb[paint] + 0.7 * np.array([0.0, 255.0, 255.0])
+    return out.clip(0, 255).astype(np.uint8)

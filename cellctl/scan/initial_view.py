@@ -16,7 +16,9 @@ from cellctl.scan.artifacts import write_ply
 from cellctl.scan.result import ScanResult, StepRecord
 from cellctl.scan.run import prepare, write_result
 from cellctl.scan.spec import Hooks, JobSpec
+from cellctl.scan.job import ScanError
 from planners import clouds
+from planners.paint_color import PaintSegmenter
 from planners.metrics import coverage
 
 
@@ -42,10 +44,16 @@ def run_initial_view(spec: JobSpec, hooks: Hooks) -> tuple[ScanResult, Path]:
             frame = twin.camera.capture_at(T)
             K = twin.camera.intrinsics.matrix()
         t1 = time.perf_counter()
-        g, c = pcfg.grid, pcfg.color
+        g = pcfg.grid
         cloud = clouds.frame_to_base_cloud(frame.color, frame.depth, K, T, lens=frame.intrinsics.lens)
         surface = clouds.voxel_dedup(cloud, g.surface_voxel_m)
-        paint = c.mask(surface.rgb)
+        seg = PaintSegmenter(pcfg.paint)  # as a scan's first step: fitted to the piece, checked
+        piece = surface.xyz[:, 2] > g.lo_m[2] + pcfg.paint.piece_above_m
+        result.paint = seg.fit(surface.rgb[piece], surface.xyz[piece])
+        if not result.paint.ok:
+            result.terminated_by = "paint_not_separable"
+            raise ScanError(f"paint_not_separable: {result.paint.reason}", "paint_not_separable")
+        paint = seg.mask(surface.rgb)
         drawing = surface.select(paint)
         cov = coverage(drawing.xyz, scene.gt_points, pcfg.coverage_voxel_m)
         t2 = time.perf_counter()

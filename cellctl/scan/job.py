@@ -35,6 +35,7 @@ from planners.motion.ik import Unreachable
 from planners.motion.kinematics import Kinematics
 from planners.motion.reach_map import reach_map_for
 from planners.motion.view_motion import ViewMotionPlanner
+from planners.paint_color import PaintSegmenter
 from planners.registry import make_planner
 from planners.views import look_at_rotations, poses_from
 
@@ -105,6 +106,8 @@ class ScanJob:
         self._drawing_total = clouds.CloudTotal(pcfg.grid.surface_voxel_m)
         self.surface = self._surface_total.cloud
         self.drawing = self._drawing_total.cloud
+        self.paint = PaintSegmenter(pcfg.paint)  # fitted on the initial view, then the paint mask of every view
+        self.paint_view: tuple[np.ndarray, np.ndarray] | None = None  # the initial image and what was paint in it
         self.empty_frames = 0
         self.frames_without_depth = 0  # captures with no valid depth pixel since the last view that had one
         self.last_stamp: float | None = None  # timestamp of the last frame accepted or refused as empty
@@ -281,7 +284,9 @@ class ScanJob:
         self.empty_frames = 0
         self.frames_without_depth = 0
         self.surface = self._surface_total.add(cloud)
-        paint = self.pcfg.color.mask(cloud.rgb)
+        if not self.paint.fitted:
+            self._check_paint(frame, cloud, pixels)
+        paint = self.paint.mask(cloud.rgb)
         self.drawing = self._drawing_total.add(cloud.select(paint))
         # the rays that carve free space: every integrate_stride_px-th pixel of the same filtered frame
         rays = cloud.select(clouds.on_stride(pixels, frame.depth.shape[1], g.integrate_stride_px))
@@ -289,6 +294,22 @@ class ScanJob:
         self.grid.set_drawing(self.drawing.xyz)
         self._scene_stale = True
         return cloud
+
+    def _check_paint(self, frame, cloud: Cloud, pixels: np.ndarray) -> None:
+        """The first view with depth fits the paint's colour to this piece and checks that what looks like
+        paint is a line apart from its metal (rule 1: where the cell cannot tell paint from metal it refuses).
+        A refusal ends the scan here, before any further motion, with the picture of what was paint."""
+        pc = self.pcfg.paint
+        piece = cloud.xyz[:, 2] > self.pcfg.grid.lo_m[2] + pc.piece_above_m
+        check = self.paint.fit(cloud.rgb[piece], cloud.xyz[piece], seed=0)
+        h, w = frame.color.shape[:2]
+        on = np.zeros(h * w, dtype=bool)
+        on[pixels] = self.paint.mask(cloud.rgb)
+        self.paint_view = (frame.color, on.reshape(h, w))
+        if not check.ok:
+            raise ScanError(f"paint_not_separable: {check.reason}", "paint_not_separable")
+        for wtext in check.warnings:
+            self._incident(0, "paint_warning", wtext)
 
     def _off_robot(self, cloud: Cloud, q: np.ndarray) -> np.ndarray | None:
         """Mask of the points not on the arm at joints q, or None when all are kept."""
@@ -336,6 +357,7 @@ class ScanJob:
         finally:
             done.set()
             res.incidents = self.incidents
+            res.paint = self.paint.check
             log = self.abilities.events
             res.arm_events = [dict(e) for e in log.events[self._arm_events_from:]] if log is not None else []
             cov = coverage(self.drawing.xyz, gt_points, self.pcfg.coverage_voxel_m)
@@ -361,7 +383,13 @@ class ScanJob:
             if self.first_color is None:
                 self.first_color = frame.color
             t1 = time.perf_counter()
-            cloud = self.process(frame, T, q)
+            try:
+                cloud = self.process(frame, T, q)
+            except ScanError:
+                if self.recorder and self.paint_view is not None:  # the refused view, with what was taken as paint
+                    self.recorder.log_view(k, T, self.K, self.image_size, frame.color, frame.depth, np.zeros((0, 3)),
+                                           np.zeros((0, 3), np.uint8), self.paint_view[1])
+                raise
             t_proc = time.perf_counter() - t1
             if len(cloud) == 0 and last_plan is not None:
                 self.planner.reject(last_plan)  # that view saw nothing: do not aim there again
@@ -381,7 +409,7 @@ class ScanJob:
             if self.recorder:
                 self.recorder.log_robot_pose(k, self.robot.links, self.robot.link_poses(q))
                 # the paint filter over the whole image: what the scan took for paint
-                paint = self.pcfg.color.mask(frame.color.reshape(-1, 3)).reshape(frame.color.shape[:2])
+                paint = self.paint.mask(frame.color.reshape(-1, 3)).reshape(frame.color.shape[:2])
                 self.recorder.log_view(k, T, self.K, self.image_size, frame.color, frame.depth, cloud.xyz, cloud.rgb,
                                        paint)
                 self.recorder.log_coverage(k, len(self.drawing), rec.coverage_percent)

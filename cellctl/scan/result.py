@@ -16,6 +16,8 @@ from typing import Annotated, Any, Literal, get_args
 from annotated_types import MaxLen
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
 
+from planners.paint_separation import PaintSeparation
+
 SCHEMA_VERSION = 1
 
 
@@ -154,6 +156,8 @@ class ResultSummary(Summary):
     motion_contacts: int = Field(0, ge=0)
     cut: CutPathSummary | None = Field(None, description="absent when no cut was planned (cancelled, error, "
                                                          "no drawing)")
+    paint: PaintSeparation | None = Field(None, description="the paint as the initial view showed it: whether it can be "
+                                     "told from the metal (ok false: terminated_by paint_not_separable, no cut)")
     error: str | None = Field(None, max_length=2000)
 
 

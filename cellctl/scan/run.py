@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from cellctl.config import CellConfig
-from cellctl.scan.artifacts import new_run_dir, save_png, write_json, write_ply
+from cellctl.scan.artifacts import new_run_dir, paint_overlay, save_png, write_json, write_ply
 from cellctl.scan.cut import clearing_targets, dry_run_cut, plan_cut, true_accuracy, twin_torch, write_trajectory
 from cellctl.scan.devices import open_devices
 from cellctl.scan.job import ScanJob
@@ -232,4 +232,6 @@ def _keep_views(job: ScanJob, run_dir: Path, scene, pcfg, planner: str, result: 
           f"{scene.name} / {planner}: {result.steps} views, coverage {result.coverage_percent:.1f} %")
     if job.first_color is not None:
         write("view0.png", save_png, job.first_color)
+    if job.paint_view is not None:  # what the initial view took as paint (a refused piece: why)
+        write("paint_check.png", save_png, paint_overlay(*job.paint_view))
     return unsaved

@@ -11,6 +11,8 @@ import sys
 
 from pydantic import BaseModel
 
+from planners.paint_separation import PaintSeparation
+
 from cellctl.service import api
 from cellctl.service.api import (ERROR_CODES, MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, SCHEMA_VERSION, Artifacts,
                                  CancelReply, CancelRequest, CellStatus, CutAccuracy, CutGap, CutPathSummary,
@@ -143,7 +145,7 @@ def field_table(model: type[BaseModel]) -> str:
 
 MODELS: list[type[BaseModel]] = [ScanDrawingRequest, SubmitReply, ListJobsRequest, JobList, JobBrief, JobRecord,
                                  Transition, Progress, ResultSummary, CutPathSummary, CutGap, CutAccuracy,
-                                 DryRunSummary, Artifacts, FileList, FileInfo, FileChunkRequest, FileChunk,
+                                 DryRunSummary, PaintSeparation, Artifacts, FileList, FileInfo, FileChunkRequest, FileChunk,
                                  CancelRequest, CancelReply, CellStatus, JobEvent, ErrorReply, ErrorDetail]
 
 
@@ -375,7 +377,14 @@ oldest ended jobs first, never the last one); it never names a folder that does 
   made) and what is left by reason (e.g. `warning: 94.1 % of the drawing will be cut in 1 cuts; uncut:
   40 mm out of reach`).
 - `failed`: the scan failed (`error`), or ran longer than `service.job_timeout_s` (`error` starts with
-  `timeout:`); the partial result is kept.
+  `timeout:`); the partial result is kept. **A piece whose paint the cell cannot tell from its metal**
+  (rust the paint's colour, the wrong paint, no paint in the initial view) fails right after the initial
+  view, before any further move, with `result.terminated_by` = `paint_not_separable`, `error` starting
+  `ScanError: paint_not_separable:` and the reason in words, `result.paint` (PaintSeparation) with what was
+  measured, no `cut`, and `paint_check.png` in its files: the camera image, what was taken as paint in
+  cyan. Show the operator that picture; recommission the paint (`cellctl calibrate paint`) or mark the
+  piece again. A piece that passes but only just (paint and metal within `paint.warn_delta_e`) ends `done`
+  with `result.paint.warnings` naming the risk.
 - `cancelled`: by a cancel request; the partial result is kept.
 - `interrupted`: the job was running when the service stopped (SIGTERM/SIGINT: the scan is stopped,
   its partial result kept) or died (found running at the next start; what it wrote is kept and listed).

@@ -7,6 +7,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
+from sim.appearance import Appearance
+
 
 @dataclass
 class Scene:
@@ -24,6 +26,7 @@ class Scene:
     initial_view_candidates: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     # (M, 4, 4) T_base_cam poses that each see part of the drawing, best first; the runner takes
     # the first one the arm can reach (the paper's task #1 is assumed done).
+    appearance: Appearance | None = None  # finish, paint and light (sim.appearance); None: the flat colours above
 
     @property
     def full_mesh(self) -> trimesh.Trimesh:

@@ -16,6 +16,7 @@ from pydantic import AllowInfNan, BaseModel, ConfigDict, Field, Strict, model_va
 from scipy.spatial.transform import Rotation
 
 from configs.loading import load_yaml_model
+from sim.appearance import Appearance
 from sim.scenes.catalog import Blueprint, assemble_scene
 from sim.scenes.model import Scene
 from sim.scenes.paint import closest_points, resample_polyline
@@ -67,6 +68,20 @@ class ColorsSpec(_Strict):
     paint: tuple[Unit, Unit, Unit] | None = None
 
 
+class AppearanceSpec(_Strict):
+    """The twin's finish, paint and light by name (sim.appearance: FINISHES, PAINTS, LIGHTS)."""
+
+    finish: str = "grey_steel"
+    paint: str = "red"
+    light: str = "normal"
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+
+    @model_validator(mode="after")
+    def _known(self) -> "AppearanceSpec":
+        Appearance(self.finish, self.paint, self.light, self.seed)  # ValueError names the unknown one
+        return self
+
+
 class SceneSpec(_Strict):
     name: Annotated[str, Field(min_length=1)]
     mesh: Annotated[str, Field(min_length=1)]  # relative to the YAML file
@@ -74,6 +89,13 @@ class SceneSpec(_Strict):
     drawing: DrawingSpec
     initial_camera: CameraSpec | None = None
     colors: ColorsSpec | None = None
+    appearance: AppearanceSpec | None = None  # textured metal, paint and light; replaces `colors` in the render
+
+    @model_validator(mode="after")
+    def _one_look(self) -> "SceneSpec":
+        if self.colors is not None and self.appearance is not None:
+            raise ValueError("give `colors` (flat colours) or `appearance` (finish, paint, light), not both")
+        return self
 
 
 def pose_matrix(pose: PoseSpec) -> np.ndarray:
@@ -137,7 +159,11 @@ def load_scene_file(path: str | Path) -> Scene:
     bp = Blueprint(mesh, polylines, spec.drawing.width, pose_matrix(spec.pose), None,
                    max_offset=spec.drawing.max_offset)
     try:
-        return assemble_scene(spec.name, bp, object_rgb=colors.object, paint_rgb=colors.paint,
-                              initial_camera_pose=camera)
+        scene = assemble_scene(spec.name, bp, object_rgb=colors.object, paint_rgb=colors.paint,
+                               initial_camera_pose=camera)
     except ValueError as exc:
         raise SceneError(f"{path}: drawing: {exc}") from None
+    if spec.appearance is not None:
+        a = spec.appearance
+        scene.appearance = Appearance(a.finish, a.paint, a.light, a.seed)
+    return scene
