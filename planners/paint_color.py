@@ -72,6 +72,12 @@ class PaintSegmenter:
             return paint < self.paint.gate_d2
         return (paint < self.paint.gate_d2) & (paint <= d2[~self.is_paint_part].min(axis=0))
 
+    def fit_view(self, rgb: np.ndarray, xyz: np.ndarray, floor_z: float, seed: int = 0) -> PaintSeparation:
+        """``fit`` on one view's points higher than ``paint.piece_above_m`` over the floor: the piece, not
+        the table it lies on."""
+        piece = np.asarray(xyz)[:, 2] > floor_z + self.paint.piece_above_m
+        return self.fit(np.asarray(rgb)[piece], np.asarray(xyz)[piece], seed)
+
     def fit(self, rgb_piece: np.ndarray, xyz_piece: np.ndarray, seed: int = 0) -> PaintSeparation:
         """Fit on the piece's points of the initial view (colours, base-frame positions) and check the
         paint. Returns (and keeps) the ``PaintSeparation``."""
@@ -142,7 +148,6 @@ class PaintSegmenter:
                                   f"{cfg.warn_delta_e:g}): check the cut follows the paint before lighting the torch")
         self.check = check
         return check
-
 
     def _seed(self, lab: np.ndarray) -> tuple[tuple[float, int], np.ndarray, bool]:
         """The light under which the commissioned paint shows on this piece, and the colours that pass its

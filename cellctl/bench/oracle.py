@@ -198,8 +198,7 @@ class TwinViews:
         # the paint's colour fitted on the initial view, as a scan fits it
         self.paint = PaintSegmenter(pcfg.paint)
         cloud = self._cloud(T0)
-        piece = cloud.xyz[:, 2] > pcfg.grid.lo_m[2] + pcfg.paint.piece_above_m
-        self.paint.fit(cloud.rgb[piece], cloud.xyz[piece])
+        self.paint.fit_view(cloud.rgb, cloud.xyz, pcfg.grid.lo_m[2])
 
     def _cloud(self, T: np.ndarray):
         cam = self.twin.camera

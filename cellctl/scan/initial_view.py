@@ -48,8 +48,7 @@ def run_initial_view(spec: JobSpec, hooks: Hooks) -> tuple[ScanResult, Path]:
         cloud = clouds.frame_to_base_cloud(frame.color, frame.depth, K, T, lens=frame.intrinsics.lens)
         surface = clouds.voxel_dedup(cloud, g.surface_voxel_m)
         seg = PaintSegmenter(pcfg.paint)  # as a scan's first step: fitted to the piece, checked
-        piece = surface.xyz[:, 2] > g.lo_m[2] + pcfg.paint.piece_above_m
-        result.paint = seg.fit(surface.rgb[piece], surface.xyz[piece])
+        result.paint = seg.fit_view(surface.rgb, surface.xyz, g.lo_m[2])
         if not result.paint.ok:
             result.terminated_by = "paint_not_separable"
             raise ScanError(f"paint_not_separable: {result.paint.reason}", "paint_not_separable")

@@ -299,9 +299,7 @@ class ScanJob:
         """The first view with depth fits the paint's colour to this piece and checks that what looks like
         paint is a line apart from its metal (rule 1: where the cell cannot tell paint from metal it refuses).
         A refusal ends the scan here, before any further motion, with the picture of what was paint."""
-        pc = self.pcfg.paint
-        piece = cloud.xyz[:, 2] > self.pcfg.grid.lo_m[2] + pc.piece_above_m
-        check = self.paint.fit(cloud.rgb[piece], cloud.xyz[piece], seed=0)
+        check = self.paint.fit_view(cloud.rgb, cloud.xyz, self.pcfg.grid.lo_m[2])
         h, w = frame.color.shape[:2]
         on = np.zeros(h * w, dtype=bool)
         on[pixels] = self.paint.mask(cloud.rgb)
