@@ -75,12 +75,14 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _scene(args: argparse.Namespace) -> int:
+    from sim.appearance import split_look
     from sim.scenes.scrap import parse_ref, scrap_refs, write_scene_file
 
     if args.scene_cmd == "write":
-        bad = [r for r in args.refs if parse_ref(r) is None]
+        bad = [r for r in args.refs if parse_ref(split_look(r)[0]) is None]
         if bad:
-            raise ValueError(f"not a generated piece: {', '.join(map(repr, bad))} (write scrap:<gen_seed>:<index>)")
+            raise ValueError(f"not a generated piece: {', '.join(map(repr, bad))} (write "
+                             f"scrap:<gen_seed>:<index>[@<finish>,<paint>,<light>[,<seed>] | @drawn])")
         for ref in args.refs:
             path = write_scene_file(ref, args.out)
             print(f"{ref} -> {path} (load it with --scene {path})")
@@ -119,6 +121,11 @@ def _doctor(args: argparse.Namespace) -> int:
 
 def _calibrate(args: argparse.Namespace) -> int:
     from cellctl.commissioning.handeye import cli_board, cli_hand_eye
+
+    if args.what == "paint":
+        from cellctl.commissioning.paint import cli_paint
+
+        return cli_paint(args)
 
     return cli_hand_eye(args) if args.what == "hand-eye" else cli_board(args)
 
@@ -394,6 +401,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "own sensor, its depth-discontinuity dropouts included (about 0.3 s per pose)")
     b.add_argument("--oracle-step-deg", type=float, default=7.5,
                    help="with --oracle: spacing of the candidate positions on their shells (default: 7.5)")
+    b.add_argument("--appearance", action="store_true",
+                   help="instead: the built-in shapes (--scenes) in the twin's finishes, paints and lights "
+                        "(sim.appearance), every finish x paint pair, each paint commissioned first; refused or "
+                        "coverage, flame to line and paint from metal per case (appearance.json, appearance.md)")
+    b.add_argument("--finishes", default=None, help="with --appearance: 'all' or a comma list (default: all)")
+    b.add_argument("--paints", default=None, help="with --appearance: 'all' or a comma list (default: all)")
+    b.add_argument("--lights", default=None, help="with --appearance: 'all' or a comma list (default: all)")
     b.add_argument("--generated", type=int, default=None, metavar="N",
                    help="instead of built-in scenes: the first N generated scrap pieces of --gen-seed (sim.scenes.scrap; "
                         "default planner gnbv, 1 seed), each with the cut oracle beside the cell's cut")
@@ -409,7 +423,8 @@ def build_parser() -> argparse.ArgumentParser:
     scsub = sc.add_subparsers(dest="scene_cmd", required=True)
     sw = scsub.add_parser("write", help="write generated pieces as scene files (<name>.yaml beside <name>.obj), "
                                         "e.g. to keep a failing piece as a regression test")
-    sw.add_argument("refs", nargs="+", metavar="REF", help="generated pieces, e.g. scrap:0:17")
+    sw.add_argument("refs", nargs="+", metavar="REF", help="generated pieces, e.g. scrap:0:17, or with a look: "
+                                                         "scrap:0:17@rust_red,pink,dim or scrap:0:17@drawn")
     sw.add_argument("--out", required=True, help="folder for the .yaml and .obj files")
     ss = scsub.add_parser("sheet", help="a PNG sheet of generated pieces, paint in red")
     ss.add_argument("refs", nargs="*", metavar="REF", help="pieces to draw (default: the first --count of --gen-seed)")
@@ -504,7 +519,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="with --add-user: an operator starts and cancels jobs, a viewer only watches")
     tb.set_defaults(func=_tablet)
 
-    cal = sub.add_parser("calibrate", help="calibrate the cell (hand-eye)")
+    cal = sub.add_parser("calibrate", help="calibrate the cell (hand-eye, the yard's paint)")
     cal_kind = cal.add_subparsers(dest="what", required=True)
     he = cal_kind.add_parser("hand-eye", help="solve the camera's pose on the flange from views of a ChArUco board "
                                               "and write the hand-eye file (docs/HARDWARE.md)",
@@ -541,6 +556,27 @@ def build_parser() -> argparse.ArgumentParser:
         a.add_argument("--square-mm", type=float, default=40.0, help="square side as printed (default: 40)")
         a.add_argument("--marker-mm", type=float, default=30.0, help="marker side as printed (default: 30)")
         a.set_defaults(func=_calibrate)
+    cp = cal_kind.add_parser("paint", help="commission the yard's marking paint from one picture of a sample (paint "
+                                           "sprayed on a piece of the yard's scrap, held in the middle of the "
+                                           "picture, bare metal round it) and write paint.yaml (docs/HARDWARE.md)",
+                             description="Nothing moves. Exit status: 0 written, 1 refused (no paint in the sample, "
+                                         "paint the cell cannot tell from this metal, no picture), 2 bad arguments "
+                                         "or config.")
+    cp.add_argument("--name", required=True, help="what the yard calls the paint (e.g. pink); in the twin also the "
+                                                  "sample's paint unless --paint says otherwise")
+    cp.add_argument("--config", default=None, help="cell config YAML (default: configs/cell.sim.yaml); it is "
+                                                   "pointed at the written file (paint_file)")
+    cp.add_argument("--out", default=None, metavar="YAML", help="paint file to write (default: paint.yaml beside "
+                                                                "the cell config)")
+    cp.add_argument("--picture", default=None, metavar="PNG", help="the sample's picture with what was taken as "
+                                                                   "paint (default: <out>_sample.png)")
+    cp.add_argument("--seed", type=int, default=0, help="seed of the colour clustering (and the twin's sample)")
+    tw = cp.add_argument_group("the twin's sample (modes sim and fcisim)")
+    tw.add_argument("--finish", default=None, help="its metal (sim.appearance FINISHES; default rust_red)")
+    tw.add_argument("--paint", default=None, help="its paint (sim.appearance PAINTS; default --name)")
+    tw.add_argument("--light", default=None, help="the light on it (sim.appearance LIGHTS; default normal)")
+    tw.add_argument("--no-paint", action="store_true", help="a sample of bare metal (it is refused)")
+    cp.set_defaults(func=_calibrate)
     rec = sub.add_parser("record", help="record the live RealSense D435 to a .bag (replayable offline)",
                          description="Exit status: 0 recorded, 2 bad arguments or camera config, 3 no camera or "
                                      "the camera failed (the message says what to check).")

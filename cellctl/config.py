@@ -11,7 +11,7 @@ from cellctl.scan.modes import MODES, ModeName
 from configs import CONFIG_DIR
 from drivers.panda.config import FrankaConfig, HandEye
 from drivers.realsense.config import RealSenseConfig
-from planners.config import ConfigError, load_yaml_model
+from planners.config import ConfigError, PaintColor, PlannersConfig, load_planners_config, load_yaml_model
 from planners.motion.collision import CollisionConfig
 from sim.config import HandEyeConfig, TwinConfig
 
@@ -131,6 +131,9 @@ class CellConfig(BaseModel):
                                       "relative to this file; when set it replaces twin.hand_eye")
     motion: MotionConfig = Field(default_factory=MotionConfig)
     planners_config: str = Field("planners.yaml", description="path, relative to this file")
+    paint_file: str | None = Field(None, description="the yard's paint as `cellctl calibrate paint` commissioned it, "
+                                   "relative to this file; when set its colour replaces the planners config's "
+                                   "paint colour (the check's limits stay the planners config's)")
     runs_dir: str = "runs"
     rerun_connect: str | None = Field(None, description="optional live viewer address, e.g. rerun+http://127.0.0.1:9876/proxy")
     service: ServiceConfig = Field(default_factory=ServiceConfig)
@@ -154,3 +157,38 @@ def load_cell_config(path: str | Path | None = None) -> tuple[CellConfig, Path]:
         if cfg.arm is not None:  # the calibration is the camera's pose on the real flange too
             cfg.arm = cfg.arm.model_copy(update={"hand_eye": HandEye(**cfg.twin.hand_eye.model_dump())})
     return cfg, p
+
+
+PAINT_COLOUR_FIELDS = ("name", "lab_mean", "lab_cov", "source")  # what a paint file sets; the limits are policy
+
+
+class _PaintFile(BaseModel):
+    model_config = ConfigDict(extra="ignore")  # the file's other keys are the calibration's record
+
+    paint: dict
+
+
+def load_paint_file(path: str | Path, base: PaintColor) -> PaintColor:
+    """The paint colour a `cellctl calibrate paint` file holds, on ``base``'s limits."""
+    doc = load_yaml_model(path, _PaintFile).paint  # type: ignore[attr-defined]
+    unknown = sorted(set(doc) - set(PAINT_COLOUR_FIELDS))
+    if unknown:
+        raise ConfigError(f"{path}: paint: {', '.join(unknown)} not read from a paint file (it holds "
+                          f"{', '.join(PAINT_COLOUR_FIELDS)}; the check's limits are set in the planners config)")
+    try:
+        return PaintColor(**{**base.model_dump(), **doc})
+    except ValueError as e:
+        raise ConfigError(f"{path}: paint: {e}") from None
+
+
+def cell_planners_config(cfg: CellConfig, cfg_path: Path) -> PlannersConfig:
+    """The planners config a job of this cell runs with: ``planners_config``, with the paint colour of
+    ``paint_file`` when the cell has one commissioned."""
+    pcfg = load_planners_config(Path(cfg_path).parent / cfg.planners_config)
+    if cfg.paint_file:
+        path = Path(cfg_path).parent / cfg.paint_file
+        if not path.is_file():
+            raise ConfigError(f"{cfg_path}: paint_file {cfg.paint_file}: no such file ({path}); run `cellctl "
+                              f"calibrate paint --config {cfg_path}` or remove paint_file")
+        pcfg = pcfg.model_copy(update={"paint": load_paint_file(path, pcfg.paint)})
+    return pcfg

@@ -48,6 +48,7 @@ class PaintSegmenter:
         self.gmm: GaussianMixture | None = None
         self.check: PaintSeparation | None = None
         self._lut: np.ndarray | None = None
+        self.floor_z: float | None = None  # the table the piece lies on, from ``fit_view``
 
     @property
     def fitted(self) -> bool:
@@ -63,6 +64,15 @@ class PaintSegmenter:
             self._lut = self._mask_lab(to_lab(_LUT_COLOURS))
         return self._lut[_lut_index(rgb)]
 
+    def paint_points(self, rgb: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """Which of the points (colours, base-frame positions) are paint: the paint's colour, on the piece.
+        The table the piece lies on is never paint, whatever its colour (a white paint and a grey table
+        look alike)."""
+        paint = self.mask(rgb)
+        if self.floor_z is not None:
+            paint &= np.asarray(xyz).reshape(-1, 3)[:, 2] > self.floor_z + self.paint.piece_above_m
+        return paint
+
     def _mask_lab(self, lab: np.ndarray) -> np.ndarray:
         # Each component seen under more or less light (a face turned from the lamp): a colour is paint
         # when the paint, lit somehow, explains it better than any metal, and within the paint's gate.
@@ -75,6 +85,7 @@ class PaintSegmenter:
     def fit_view(self, rgb: np.ndarray, xyz: np.ndarray, floor_z: float, seed: int = 0) -> PaintSeparation:
         """``fit`` on one view's points higher than ``paint.piece_above_m`` over the floor: the piece, not
         the table it lies on."""
+        self.floor_z = float(floor_z)
         piece = np.asarray(xyz)[:, 2] > floor_z + self.paint.piece_above_m
         return self.fit(np.asarray(rgb)[piece], np.asarray(xyz)[piece], seed)
 

@@ -10,6 +10,7 @@ trustworthy if it is tried on these.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numba as nb
@@ -110,6 +111,36 @@ class Appearance:
         """The finish's average colour (base and patch by their shares)."""
         f = self.metal
         return (1 - f.share) * np.asarray(f.base) + f.share * np.asarray(f.patch)
+
+
+LOOK = re.compile(r"^(?:(drawn)|([a-z_]+),([a-z_]+),([a-z_]+)(?:,(\d+))?)$")
+
+
+def drawn_appearance(key) -> Appearance:
+    """An appearance drawn at random (every finish, paint and light equally likely) from its own stream
+    ``key`` (a list of ints), so drawing one changes nothing else a generator draws."""
+    rng = np.random.default_rng([*map(int, key), 4243])
+    return Appearance(str(rng.choice(list(FINISHES))), str(rng.choice(list(PAINTS))), str(rng.choice(list(LIGHTS))),
+                      int(rng.integers(0, 1000)))
+
+
+def split_look(ref: str) -> tuple[str, str | None]:
+    """A scene reference and its look: ``t_piece@rust_red,pink,dim[,seed]`` or ``scrap:0:8@drawn`` ->
+    (``t_piece``, ``rust_red,pink,dim``); a reference without one -> (ref, None)."""
+    base, at, look = ref.rpartition("@")
+    if at and base and LOOK.match(look):
+        return base, look
+    return ref, None
+
+
+def parse_look(look: str, key) -> Appearance:
+    """The appearance a look names; ``drawn``: drawn from the stream ``key``."""
+    m = LOOK.match(look)
+    if m is None:
+        raise ValueError(f"bad look {look!r}: write <finish>,<paint>,<light>[,<seed>] or drawn")
+    if m.group(1):
+        return drawn_appearance(key)
+    return Appearance(m.group(2), m.group(3), m.group(4), int(m.group(5) or 0))
 
 
 # --- procedural texture --------------------------------------------------------------------------

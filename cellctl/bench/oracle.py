@@ -207,7 +207,7 @@ class TwinViews:
 
     def seen_pose(self, T: np.ndarray) -> np.ndarray:
         cloud = self._cloud(T)
-        paint = self.paint.mask(cloud.rgb)
+        paint = self.paint.paint_points(cloud.rgb, cloud.xyz)
         return np.isin(self.keys, np.unique(voxel_keys(cloud.xyz[paint], self.voxel)))
 
 

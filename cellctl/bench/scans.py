@@ -201,14 +201,14 @@ def run_bench(cfg: CellConfig, cfg_path: Path, scenes: list[str], planners: list
     ``cut_oracles``; ``generated``: the generator's n and seed, when the scenes are generated pieces
     (their family and lines under ``pieces``)."""
     from cellctl.scan.run import run_job
-    from planners.config import load_planners_config
+    from cellctl.config import cell_planners_config
     from sim.scenes import load_scene
 
     if seeds < 1:
         raise ValueError("--seeds must be >= 1")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
+    pcfg = cell_planners_config(cfg, cfg_path)
     # Scenes are built once per process and cached, so loading them here costs the runs nothing;
     # it also fails early on a bad name and gives the category.
     categories = {name: load_scene(name).category for name in scenes}
@@ -344,11 +344,11 @@ def summary_line(doc: dict) -> str:
 def scoring_bench(args, out: Path) -> int:
     from cellctl.bench import scoring as sb
     from cellctl.config import load_cell_config
-    from planners.config import load_planners_config
+    from cellctl.config import cell_planners_config
     from sim.scenes import SCENE_NAMES
 
     cfg, cfg_path = load_cell_config(args.config)
-    pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
+    pcfg = cell_planners_config(cfg, cfg_path)
     scenes = parse_list(args.scenes, SCENE_NAMES, "scenes", SCENE_NAMES)
     result = sb.measure(cfg, pcfg, scenes, repeats=max(args.seeds or 3, 1))
     print(sb.write(result, out))
@@ -360,11 +360,11 @@ def scoring_bench(args, out: Path) -> int:
 def oracle_bench(args, out: Path) -> int:
     from cellctl.bench import oracle as ob
     from cellctl.config import load_cell_config
-    from planners.config import load_planners_config
+    from cellctl.config import cell_planners_config
     from sim.scenes import SCENE_NAMES
 
     cfg, cfg_path = load_cell_config(args.config)
-    pcfg = load_planners_config(cfg_path.parent / cfg.planners_config)
+    pcfg = cell_planners_config(cfg, cfg_path)
     scenes = parse_list(args.scenes, SCENE_NAMES, "scenes", SCENE_NAMES)
     print(ob.write(ob.measure(cfg, pcfg, scenes, sensor=args.oracle_sensor, step_deg=args.oracle_step_deg), out))
     return 0
@@ -393,6 +393,10 @@ def cli_bench(args) -> int:
         return cli_load(args, Path(args.out) if args.out else default_out_dir())
     if getattr(args, "scoring", False):
         return scoring_bench(args, Path(args.out) if args.out else default_out_dir())
+    if getattr(args, "appearance", False):
+        from cellctl.bench.appearance import cli_appearance
+
+        return cli_appearance(args, Path(args.out) if args.out else default_out_dir())
     if getattr(args, "oracle", False):
         return oracle_bench(args, Path(args.out) if args.out else default_out_dir())
     q = QUICK if args.quick else {}

@@ -22,8 +22,8 @@ from typing import Callable
 
 import numpy as np
 import trimesh
-import yaml
 
+from cellctl.commissioning.config_files import backup, point_config_at, write_record
 from cellctl.config import CellConfig, MotionConfig
 from cellctl.scan.modes import MODES
 from configs.charuco import CharucoBoardConfig
@@ -76,15 +76,9 @@ class HandEyeRun:
 
 
 def write_hand_eye_file(path: str | Path, record: dict) -> Path:
-    """Atomic write (a crash never leaves half a calibration where the config reads it)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
     header = ("# T_flange_cam from `cellctl calibrate hand-eye` (camera optical frame in panda_hand; xyz m, fixed-axis\n"
               "# roll/pitch/yaw deg). Point the cell config's hand_eye_file here; the rest is the calibration's record.\n")
-    tmp.write_text(header + yaml.safe_dump(record, sort_keys=False, default_flow_style=None, width=110))
-    os.replace(tmp, path)
-    return path
+    return write_record(path, record, header)
 
 
 # ----------------------------------------------------------------------------- the pose-visiting loop
@@ -339,41 +333,6 @@ def method_spread(run: HandEyeRun) -> tuple[float, float] | None:
     return float(errs[:, 0].max()), float(errs[:, 1].max())
 
 
-def backup(path: Path) -> Path | None:
-    """Keep the calibration a new one replaces, beside it with its time (never overwritten)."""
-    if not path.is_file():
-        return None
-    stamp = datetime.datetime.fromtimestamp(path.stat().st_mtime).strftime("%Y%m%dT%H%M%S")
-    dest, n = path.with_name(f"{path.name}.{stamp}.bak"), 1
-    while dest.exists():
-        n += 1
-        dest = path.with_name(f"{path.name}.{stamp}-{n}.bak")
-    dest.write_bytes(path.read_bytes())
-    return dest
-
-
-def point_config_at(cfg_path: Path, hand_eye_path: Path) -> str:
-    """Make a cell config read a new calibration: a config that names no ``hand_eye_file`` gets one appended
-    (the config kept as a .bak first, its comments untouched); one that names another file is left as it
-    is. Returns what happened, in words."""
-    from configs.loading import safe_load
-
-    text = cfg_path.read_text()
-    current = (safe_load(text) or {}).get("hand_eye_file")
-    rel = os.path.relpath(hand_eye_path.resolve(), cfg_path.parent.resolve())
-    if current and (cfg_path.parent / current).resolve() == hand_eye_path.resolve():
-        return f"{cfg_path.name} reads it (hand_eye_file: {current})"
-    if current:
-        return f"{cfg_path.name} still reads {current}: set hand_eye_file: {rel} there to use the new calibration"
-    old = backup(cfg_path)
-    stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
-    tmp = cfg_path.with_name(cfg_path.name + ".tmp")
-    tmp.write_text(text + ("" if text.endswith("\n") else "\n")
-                   + f"hand_eye_file: {rel}   # cellctl calibrate hand-eye, {stamp}\n")
-    os.replace(tmp, cfg_path)
-    return f"{cfg_path.name} now reads it (hand_eye_file: {rel} added; the config before is kept as {old.name})"
-
-
 def cli_hand_eye(args) -> int:
     """`cellctl calibrate hand-eye`: 0 written, 1 calibration failed or refused (the message says why)."""
     from cellctl.config import load_cell_config
@@ -409,7 +368,7 @@ def cli_hand_eye(args) -> int:
     write_hand_eye_file(out, run.record(cfg.cell_id, source="twin" if MODES[cfg.mode].twin_arm else cfg.mode))
     _print_result(run, out, cfg_path, old)
     if not MODES[cfg.mode].twin_arm:  # a real cell's config reads its calibration; the twin's demo config is left
-        print(f"  config         {point_config_at(cfg_path, out)}")
+        print(f"  config         {point_config_at(cfg_path, out, 'hand_eye_file', 'calibrate hand-eye')}")
     return 0
 
 

@@ -52,7 +52,7 @@ def run_initial_view(spec: JobSpec, hooks: Hooks) -> tuple[ScanResult, Path]:
         if not result.paint.ok:
             result.terminated_by = "paint_not_separable"
             raise ScanError(f"paint_not_separable: {result.paint.reason}", "paint_not_separable")
-        paint = seg.mask(surface.rgb)
+        paint = seg.paint_points(surface.rgb, surface.xyz)
         drawing = surface.select(paint)
         cov = coverage(drawing.xyz, scene.gt_points, pcfg.coverage_voxel_m)
         t2 = time.perf_counter()

@@ -107,6 +107,7 @@ class ScanJob:
         self.surface = self._surface_total.cloud
         self.drawing = self._drawing_total.cloud
         self.paint = PaintSegmenter(pcfg.paint)  # fitted on the initial view, then the paint mask of every view
+        self.view_paint: np.ndarray | None = None  # (H, W) bool: the last view's paint on its picture
         self.paint_view: tuple[np.ndarray, np.ndarray] | None = None  # the initial image and what was paint in it
         self.empty_frames = 0
         self.frames_without_depth = 0  # captures with no valid depth pixel since the last view that had one
@@ -269,6 +270,7 @@ class ScanJob:
         g = self.pcfg.grid
         cloud, pixels = clouds.frame_to_base_cloud(frame.color, frame.depth, self.K, T_base_cam, pixels=True,
                                                    lens=frame.intrinsics.lens)
+        self.view_paint = None
         keep = self._off_robot(cloud, q)
         if keep is not None:
             cloud, pixels = cloud.select(keep), pixels[keep]
@@ -286,7 +288,11 @@ class ScanJob:
         self.surface = self._surface_total.add(cloud)
         if not self.paint.fitted:
             self._check_paint(frame, cloud, pixels)
-        paint = self.paint.mask(cloud.rgb)
+        paint = self.paint.paint_points(cloud.rgb, cloud.xyz)
+        h, w = frame.color.shape[:2]
+        on = np.zeros(h * w, dtype=bool)
+        on[pixels[paint]] = True
+        self.view_paint = on.reshape(h, w)  # what this view took as paint, on its picture (Rerun, the tablet)
         self.drawing = self._drawing_total.add(cloud.select(paint))
         # the rays that carve free space: every integrate_stride_px-th pixel of the same filtered frame
         rays = cloud.select(clouds.on_stride(pixels, frame.depth.shape[1], g.integrate_stride_px))
@@ -302,7 +308,7 @@ class ScanJob:
         check = self.paint.fit_view(cloud.rgb, cloud.xyz, self.pcfg.grid.lo_m[2])
         h, w = frame.color.shape[:2]
         on = np.zeros(h * w, dtype=bool)
-        on[pixels] = self.paint.mask(cloud.rgb)
+        on[pixels] = self.paint.paint_points(cloud.rgb, cloud.xyz)
         self.paint_view = (frame.color, on.reshape(h, w))
         if not check.ok:
             raise ScanError(f"paint_not_separable: {check.reason}", "paint_not_separable")
@@ -406,8 +412,8 @@ class ScanJob:
             res.capture_s += rec.capture_s
             if self.recorder:
                 self.recorder.log_robot_pose(k, self.robot.links, self.robot.link_poses(q))
-                # the paint filter over the whole image: what the scan took for paint
-                paint = self.paint.mask(frame.color.reshape(-1, 3)).reshape(frame.color.shape[:2])
+                # what the scan took for paint: the paint's colour, on the piece
+                paint = self.view_paint if self.view_paint is not None else np.zeros(frame.color.shape[:2], bool)
                 self.recorder.log_view(k, T, self.K, self.image_size, frame.color, frame.depth, cloud.xyz, cloud.rgb,
                                        paint)
                 self.recorder.log_coverage(k, len(self.drawing), rec.coverage_percent)

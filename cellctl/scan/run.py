@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cellctl.config import CellConfig
+from cellctl.config import CellConfig, cell_planners_config
 from cellctl.scan.artifacts import new_run_dir, paint_overlay, save_png, write_json, write_ply
 from cellctl.scan.cut import clearing_targets, dry_run_cut, plan_cut, true_accuracy, twin_torch, write_trajectory
 from cellctl.scan.devices import open_devices
@@ -22,7 +22,7 @@ from cellctl.scan.recording import ScanRecorder
 from cellctl.scan.result import ResultFile, ScanResult, StepRecord
 from cellctl.scan.spec import Hooks, JobSpec
 from drivers.interfaces import Arm
-from planners.config import PlannersConfig, load_planners_config
+from planners.config import PlannersConfig
 from sim.config import TwinConfig
 from sim.scenes import Scene, load_scene
 
@@ -108,7 +108,7 @@ class JobSetup:
 def prepare(spec: JobSpec) -> JobSetup:
     """The set-up of a job, whatever its profile."""
     cfg = spec.cfg
-    pcfg = load_planners_config(spec.cfg_path.parent / cfg.planners_config)
+    pcfg = cell_planners_config(cfg, spec.cfg_path)
     if spec.max_steps is not None:
         pcfg = pcfg.model_copy(update={"max_steps": spec.max_steps})
     scene = load_scene(spec.scene)

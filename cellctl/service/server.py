@@ -105,14 +105,14 @@ class JobControl:
 class CellService:
     def __init__(self, cfg: CellConfig, cfg_path: Path, data_dir: str | Path | None = None, *,
                  listen: list[str] | None = None, connect: list[str] | None = None):
-        from planners.config import load_planners_config
+        from cellctl.config import cell_planners_config
 
         self.cfg, self.cfg_path, self.scfg = cfg, Path(cfg_path), cfg.service
         if self.scfg.rerun_connect:
             self.cfg = cfg.model_copy(update={"rerun_connect": self.scfg.rerun_connect})
         self.data_dir = Path(data_dir or self.scfg.data_dir).resolve()
         self.keys = Keys(cfg.cell_id)
-        self.default_max_steps = load_planners_config(self.cfg_path.parent / cfg.planners_config).max_steps
+        self.default_max_steps = cell_planners_config(cfg, self.cfg_path).max_steps
         # resolved once: a request's scene path must resolve inside one of these (symlinks followed)
         self.scene_dirs = [(self.cfg_path.parent / d).resolve() for d in self.scfg.scene_dirs]
         self.listen = self.scfg.listen if listen is None else listen

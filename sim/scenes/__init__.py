@@ -7,6 +7,9 @@ or `load_scene("configs/scenes/example_plate.yaml")` -> `Scene` in the robot bas
 from __future__ import annotations
 
 import os
+import zlib
+
+from sim.appearance import parse_look, split_look
 
 from sim.scenes.catalog import SCENE_NAMES, build_catalog_scene
 from sim.scenes.model import Scene
@@ -16,8 +19,22 @@ __all__ = ["SCENE_NAMES", "Scene", "SceneError", "load_scene"]
 
 
 def load_scene(name_or_path: str | os.PathLike) -> Scene:
-    """A catalog scene by name, or a user scene from a .yaml/.yml file path."""
-    ref = os.fspath(name_or_path)
+    """A catalog scene by name, or a user scene from a .yaml/.yml file path; any of them with a look
+    (``@<finish>,<paint>,<light>[,<seed>]`` or ``@drawn``, sim.appearance) in the twin's camera."""
+    ref, look = split_look(os.fspath(name_or_path))
+    scene = _load(ref)
+    if look is not None:
+        from sim.scenes.scrap import parse_ref
+
+        key = parse_ref(ref) or [zlib.crc32(ref.encode())]
+        try:
+            scene.appearance = parse_look(look, key)
+        except ValueError as e:
+            raise SceneError(f"{ref}@{look}: {e}") from None
+    return scene
+
+
+def _load(ref: str) -> Scene:
     if ref in SCENE_NAMES:
         return build_catalog_scene(ref)
     if ref.startswith("scrap:"):

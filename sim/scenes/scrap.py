@@ -682,10 +682,14 @@ def write_scene_file(ref: str, out_dir: str | Path) -> Path:
     from scipy.spatial.transform import Rotation
     import yaml
 
+    from sim.appearance import parse_look, split_look
+
+    ref, look = split_look(str(ref))
     key = parse_ref(ref)
     if key is None:
-        raise ValueError(f"not a generated piece: {ref!r} (scrap:<gen_seed>:<index>)")
+        raise ValueError(f"not a generated piece: {ref!r} (scrap:<gen_seed>:<index>[@<look>])")
     name, bp, meta = generate(*key)
+    appearance = parse_look(look, key) if look is not None else None
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     mesh_path = out / f"{name}.obj"
@@ -701,6 +705,9 @@ def write_scene_file(ref: str, out_dir: str | Path) -> Path:
                                    + [line[-1].tolist()]] for line in bp.polylines],
                     **({"max_offset": float(bp.max_offset)} if bp.max_offset is not None else {})},
     }
+    if appearance is not None:
+        doc["appearance"] = {"finish": appearance.finish, "paint": appearance.paint, "light": appearance.light,
+                             "seed": appearance.seed}
     path = out / f"{name}.yaml"
     header = f"# generated piece {ref}: {meta['family']}, line {', '.join(meta['lines'])} (sim/scenes/scrap.py)\n"
     path.write_text(header + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120))

@@ -1,0 +1,162 @@
+"""Issue 42: the yard's paint commissioned from one picture of a sample (`cellctl calibrate paint`), a
+following scan that uses it, samples that must be refused, the look of a scene named in its reference,
+and the appearance bench's cases. Real twin pictures and scans.
+
+Tests of: planners.paint_calibration, cellctl.commissioning.paint, cellctl.commissioning.config_files,
+sim.scenes.sample, cellctl.bench.appearance."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from skimage.color import deltaE_cie76, rgb2lab
+
+from cellctl.bench.appearance import cases, paint_from_metal, true_delta_e, verdict
+from cellctl.cli import main
+from cellctl.config import cell_planners_config, load_cell_config
+from cellctl.scan.job import ScanError
+from cellctl.scan.run import run_job
+from cellctl.scan.spec import JobSpec
+from configs import CONFIG_DIR
+from planners.config import ConfigError
+from sim.appearance import FINISHES, LIGHTS, PAINTS
+from sim.scenes import SCENE_NAMES, SceneError, load_scene
+from sim.scenes.scrap import write_scene_file
+
+DATA = Path(__file__).parent / "data" / "scrap"
+
+
+def _cell(tmp_path: Path) -> Path:
+    """A copy of the sim cell's config in tmp_path (calibrating points it at the paint file)."""
+    doc = yaml.safe_load((CONFIG_DIR / "cell.sim.yaml").read_text())
+    doc["planners_config"] = str(CONFIG_DIR / doc.get("planners_config", "planners.yaml"))
+    doc["runs_dir"] = str(tmp_path / "runs")
+    path = tmp_path / "cell.yaml"
+    path.write_text("# the test's cell\n" + yaml.safe_dump(doc))
+    return path
+
+
+def _lab(rgb) -> np.ndarray:
+    return rgb2lab(np.asarray(rgb, dtype=np.float64).reshape(1, 1, 3)).reshape(3)
+
+
+def _pink_box(tmp_path: Path) -> Path:
+    """The issue's red-rust box in red rust, sprayed pink."""
+    doc = yaml.safe_load((DATA / "red-rust-box.yaml").read_text())
+    doc.pop("colors", None)
+    doc["name"] = "pink_rust_box"
+    doc["mesh"] = str(DATA / doc["mesh"])
+    doc["appearance"] = {"finish": "rust_red", "paint": "pink", "light": "normal", "seed": 3}
+    path = tmp_path / "pink-box.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_pink_on_rust_is_commissioned_and_a_following_scan_uses_it(tmp_path, capsys):
+    cell = _cell(tmp_path)
+    scene = str(_pink_box(tmp_path))
+    cfg0, _ = load_cell_config(cell)
+    with pytest.raises(ScanError, match="paint_not_separable"):  # red is commissioned: no red line on this piece
+        run_job(JobSpec(cfg0, cell, scene, "gnbv", profile="initial_view", noise=False, out=str(tmp_path)))
+
+    assert main(["calibrate", "paint", "--config", str(cell), "--name", "pink", "--finish", "rust_red"]) == 0
+    written = yaml.safe_load((tmp_path / "paint.yaml").read_text())
+    assert written["paint"]["name"] == "pink"
+    assert float(deltaE_cie76(written["paint"]["lab_mean"], _lab(PAINTS["pink"]))) < 5  # the sample's pink, as lit
+    assert written["delta_e"] >= 15
+    assert (tmp_path / "paint_sample.png").is_file()
+    assert "paint_file: paint.yaml" in cell.read_text() and list(tmp_path.glob("cell.yaml.*.bak"))
+    assert "# the test's cell" in cell.read_text()  # the config's own text is kept
+
+    cfg, _ = load_cell_config(cell)
+    assert cfg.paint_file == "paint.yaml"
+    pcfg = cell_planners_config(cfg, cell)
+    assert pcfg.paint.name == "pink" and pcfg.paint.min_delta_e == 15.0  # colour from the file, limits from planners
+    res, run_dir = run_job(JobSpec(cfg, cell, scene, "gnbv", noise=False, out=str(tmp_path), max_steps=3, cut=False))
+    assert res.paint.ok and res.terminated_by != "paint_not_separable", res.paint
+    assert res.coverage_percent > 50
+    assert paint_from_metal(run_dir, load_scene(scene)) <= 0.02
+
+
+def test_a_sample_without_paint_is_refused_and_nothing_written(tmp_path, capsys):
+    cell = _cell(tmp_path)
+    text = cell.read_text()
+    assert main(["calibrate", "paint", "--config", str(cell), "--name", "pink", "--finish", "rust_patchy",
+                 "--no-paint"]) == 1
+    assert "no paint in the sample" in capsys.readouterr().err
+    assert not (tmp_path / "paint.yaml").exists() and cell.read_text() == text
+    assert (tmp_path / "paint_sample.png").is_file()  # the picture shows the operator what was seen
+
+
+def test_paint_that_cannot_be_told_from_its_metal_is_refused(tmp_path, capsys):
+    cell = _cell(tmp_path)
+    assert main(["calibrate", "paint", "--config", str(cell), "--name", "white", "--finish", "galvanized"]) == 1
+    err = capsys.readouterr().err
+    assert "cannot be told from this metal" in err or "has the paint's colour" in err
+    assert not (tmp_path / "paint.yaml").exists()
+
+
+def test_bad_paint_files_are_refused_with_the_way_out(tmp_path):
+    cell = _cell(tmp_path)
+    cell.write_text(cell.read_text() + "paint_file: paint.yaml\n")
+    cfg, _ = load_cell_config(cell)
+    with pytest.raises(ConfigError, match="calibrate paint"):
+        cell_planners_config(cfg, cell)
+    (tmp_path / "paint.yaml").write_text("paint: {name: x, lab_mean: [50, 0, 0], min_delta_e: 2}\n")
+    with pytest.raises(ConfigError, match="min_delta_e not read from a paint file"):
+        cell_planners_config(cfg, cell)
+    (tmp_path / "paint.yaml").write_text("paint: {name: x, lab_cov: [[1, 2, 0], [0, 1, 0], [0, 0, 1]]}\n")
+    with pytest.raises(ConfigError, match="positive-definite"):
+        cell_planners_config(cfg, cell)
+
+
+def test_a_white_line_is_never_the_grey_table(tmp_path):
+    """White paint passes the grey floor's colour: what the scan takes as paint is on the piece only
+    (before, 98 % of an I-beam's drawing cloud was the table)."""
+    cell = _cell(tmp_path)
+    assert main(["calibrate", "paint", "--config", str(cell), "--name", "white", "--finish", "rust_red"]) == 0
+    cfg, _ = load_cell_config(cell)
+    scene = "i_beam@rust_red,white,normal,3"
+    res, run_dir = run_job(JobSpec(cfg, cell, scene, "gnbv", profile="initial_view", noise=False, out=str(tmp_path)))
+    assert res.paint.ok
+    assert paint_from_metal(run_dir, load_scene(scene)) <= 0.02
+
+
+def test_a_scene_reference_names_its_look(tmp_path):
+    s = load_scene("t_piece@rust_brown,orange,warm,4")
+    assert (s.appearance.finish, s.appearance.paint, s.appearance.light, s.appearance.seed) == \
+        ("rust_brown", "orange", "warm", 4)
+    assert load_scene("t_piece").appearance is None
+    a, b = load_scene("scrap:0:3@drawn").appearance, load_scene("scrap:0:3@drawn").appearance
+    assert a == b and a.finish in FINISHES  # drawn from its own seeded stream
+    assert load_scene("scrap:0:3").drawing_polylines[0].tolist() == load_scene("scrap:0:3@drawn").drawing_polylines[0].tolist()
+    with pytest.raises(SceneError, match="unknown light"):
+        load_scene("t_piece@rust_red,red,noon")
+    path = write_scene_file("scrap:0:3@rust_dark,green,dim,2", tmp_path)
+    assert load_scene(str(path)).appearance.paint == "green"
+
+
+def test_the_appearance_bench_covers_the_set_and_knows_separable_from_not():
+    shapes = list(SCENE_NAMES)
+    cs = cases(shapes, list(FINISHES), list(PAINTS), list(LIGHTS))
+    textured = [c for c in cs if not c["reference"]]
+    assert len(textured) == len(FINISHES) * len(PAINTS)
+    assert {(c["finish"], c["paint"]) for c in textured} == {(f, p) for f in FINISHES for p in PAINTS}
+    assert {c["shape"] for c in textured} == set(shapes) and {c["light"] for c in textured} == set(LIGHTS)
+    assert sum(FINISHES[f].rust for f in FINISHES) >= 3 and len(PAINTS) >= 5 and len(LIGHTS) >= 3
+    assert true_delta_e("grey_steel", "red", "normal") > 60
+    assert true_delta_e("galvanized", "white", "dim") < 15  # white on zinc in dim light: no line to see
+    assert true_delta_e("rust_red", "red", "shadow") < true_delta_e("rust_red", "red", "normal")
+    refused = dict(true_delta_e=10.0, terminated_by="paint_not_separable", views=0, cuts=0)
+    assert verdict(refused) == "refused"
+    assert verdict({**refused, "true_delta_e": 30.0}) == "refused, separable"
+    done = dict(true_delta_e=30.0, terminated_by="frontier", views=4, cuts=2, coverage=99.0, path_max_mm=4.0,
+                from_metal=0.001)
+    assert verdict(done) == "ok"
+    assert verdict({**done, "path_max_mm": 12.0}) == "path"
+    assert verdict({**done, "path_max_mm": 12.0}, reference_path_mm=11.5) == "ok"  # as on grey steel
+    assert verdict({**done, "from_metal": 0.3, "coverage": 90.0}) == "coverage + from metal"
+    assert verdict({**done, "true_delta_e": 10.0}) == "not refused"
