@@ -49,6 +49,7 @@ class PaintSegmenter:
         self.check: PaintSeparation | None = None
         self._lut: np.ndarray | None = None
         self.floor_z: float | None = None  # the table the piece lies on, from ``fit_view``
+        self.workspace: tuple[np.ndarray, np.ndarray] | None = None  # the box the piece lies in (the grid's)
 
     @property
     def fitted(self) -> bool:
@@ -69,8 +70,11 @@ class PaintSegmenter:
         The table the piece lies on is never paint, whatever its colour (a white paint and a grey table
         look alike)."""
         paint = self.mask(rgb)
+        xyz = np.asarray(xyz).reshape(-1, 3)
         if self.floor_z is not None:
-            paint &= np.asarray(xyz).reshape(-1, 3)[:, 2] > self.floor_z + self.paint.piece_above_m
+            paint &= xyz[:, 2] > self.floor_z + self.paint.piece_above_m
+        if self.workspace is not None:  # the floor far off, lifted by the depth noise there, is no piece either
+            paint &= np.all((xyz >= self.workspace[0]) & (xyz <= self.workspace[1]), axis=1)
         return paint
 
     def _mask_lab(self, lab: np.ndarray) -> np.ndarray:
@@ -82,11 +86,16 @@ class PaintSegmenter:
             return paint < self.paint.gate_d2
         return (paint < self.paint.gate_d2) & (paint <= d2[~self.is_paint_part].min(axis=0))
 
-    def fit_view(self, rgb: np.ndarray, xyz: np.ndarray, floor_z: float, seed: int = 0) -> PaintSeparation:
-        """``fit`` on one view's points higher than ``paint.piece_above_m`` over the floor: the piece, not
-        the table it lies on."""
+    def fit_view(self, rgb: np.ndarray, xyz: np.ndarray, floor_z: float, seed: int = 0,
+                 workspace: tuple | None = None) -> PaintSeparation:
+        """``fit`` on one view's points higher than ``paint.piece_above_m`` over the floor and inside
+        ``workspace`` ((lo, hi) corners, the grid's box) when given: the piece, not the table it lies on."""
         self.floor_z = float(floor_z)
+        if workspace is not None:
+            self.workspace = (np.asarray(workspace[0], dtype=np.float64), np.asarray(workspace[1], dtype=np.float64))
         piece = np.asarray(xyz)[:, 2] > floor_z + self.paint.piece_above_m
+        if self.workspace is not None:
+            piece &= np.all((np.asarray(xyz) >= self.workspace[0]) & (np.asarray(xyz) <= self.workspace[1]), axis=1)
         return self.fit(np.asarray(rgb)[piece], np.asarray(xyz)[piece], seed)
 
     def fit(self, rgb_piece: np.ndarray, xyz_piece: np.ndarray, seed: int = 0) -> PaintSeparation:
@@ -98,7 +107,8 @@ class PaintSegmenter:
             self.check = PaintSeparation(ok=False, reason=f"the initial view shows only {len(lab)} points of the piece")
             return self.check
         rng = np.random.default_rng(seed)
-        sample = lab[rng.choice(len(lab), FIT_SAMPLES, replace=False)] if len(lab) > FIT_SAMPLES else lab
+        pick = rng.choice(len(lab), FIT_SAMPLES, replace=False) if len(lab) > FIT_SAMPLES else np.arange(len(lab))
+        sample, sample_xyz = lab[pick], np.asarray(xyz_piece)[pick]
         light, seeded, metal_passes = self._seed(sample)
         if not seeded.any():
             why = ("under some light the metal itself has the paint's colour, and no light shows a line of it"
@@ -121,10 +131,14 @@ class PaintSegmenter:
             gmm.fit(sample)
         self.gmm, self._lut = gmm, None
         self.light = light
-        # a component on the paint's shading line is the paint on a face turned from the light
+        # a component on the paint's shading line is the paint on a face turned from the light, unless it
+        # covers the piece in patches wider than a spray: then it is metal that, less lit, looks like the
+        # paint (grey steel beside white paint, brown rust beside orange)
+        label = gmm.predict(sample)
         self.is_paint_part = np.array([True] + [
-            float(_d2_shaded(gmm.means_[k][None], gmm.means_[0], gmm.covariances_[0])[0])
-            < cfg.gate_d2 for k in range(1, 1 + METAL_PARTS)])
+            float(_d2_shaded(gmm.means_[k][None], gmm.means_[0], gmm.covariances_[0])[0]) < cfg.gate_d2
+            and not _wider_than(sample_xyz[label == k], sample_xyz[label != k], cfg.max_band_m)
+            for k in range(1, 1 + METAL_PARTS)])
         paint_mu, metal_mu = gmm.means_[0], gmm.means_[~self.is_paint_part]
         is_paint = self._mask_lab(lab)
         share = float(is_paint.mean())
@@ -208,6 +222,12 @@ def band_width(paint_xyz: np.ndarray, metal_xyz: np.ndarray) -> float | None:
         return None
     d, _ = cKDTree(metal_xyz).query(paint_xyz, workers=-1)
     return 2.0 * float(np.quantile(d, 0.9))
+
+
+def _wider_than(part_xyz: np.ndarray, rest_xyz: np.ndarray, width_m: float) -> bool:
+    """Whether a colour's points form patches wider than ``width_m`` (``band_width``), not a line."""
+    w = band_width(part_xyz, rest_xyz)
+    return w is not None and w > width_m
 
 
 def _d2_shaded(lab: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:

@@ -150,6 +150,10 @@ def test_the_appearance_bench_covers_the_set_and_knows_separable_from_not():
     assert true_delta_e("grey_steel", "red", "normal") > 60
     assert true_delta_e("galvanized", "white", "dim") < 15  # white on zinc in dim light: no line to see
     assert true_delta_e("rust_red", "red", "shadow") < true_delta_e("rust_red", "red", "normal")
+    # white paint turned from the lamp is grey steel's colour: apart when lit alike, alike when not
+    assert true_delta_e("grey_steel", "white", "normal") > 40 > 15 > true_delta_e("grey_steel", "white", "normal",
+                                                                                    shaded=True)
+    assert len([c for c in cs if c["reference"]]) >= 2 * len(shapes)
     refused = dict(true_delta_e=10.0, terminated_by="paint_not_separable", views=0, cuts=0)
     assert verdict(refused) == "refused"
     assert verdict({**refused, "true_delta_e": 30.0}) == "refused, separable"

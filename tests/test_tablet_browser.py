@@ -113,6 +113,14 @@ def _tour(page, tab, cell: dict, shots: Path, tmp_path: Path) -> None:
                 re.compile(r"^\d+ % of the \d+ cm line will be cut$"))
             expect(page.get_by_test_id("cuts")).to_have_text(re.compile(r"^\d+ cuts?"))
             expect(page.get_by_test_id("scan-line")).to_contain_text("% of the line seen in")
+            # every view's picture with what it took as paint, loaded (not a broken image)
+            first = page.get_by_test_id("paint-paint_view0")
+            expect(first).to_be_visible(timeout=LIVE_S)
+            expect(page.get_by_test_id("paint-views")).to_contain_text("What the camera took as paint")
+            views = page.locator("[data-testid^=paint-paint_view]")
+            assert views.count() >= 2, "a scan has several views, each with its paint picture"
+            img = first.locator("img").first
+            page.wait_for_function("e => e.complete && e.naturalWidth > 0", arg=img.element_handle(), timeout=LIVE_S)
             canvas = page.get_by_test_id("scene3d").locator("canvas").first
             expect(canvas).to_be_visible(timeout=LIVE_S)
             for _ in range(60):  # three.js draws what it was sent within a few frames

@@ -26,6 +26,7 @@ SEPARABLE_DE = 15.0  # the issue's line: paint and metal this far apart in CIE76
 COMMISSION_SAMPLE = ("rust_patchy", "normal")  # the yard's sample: bare steel with rust, the day's light
 FROM_METAL_MARGIN_M = 0.003  # beyond the overspray band: a paint point farther than this is metal
 COVERAGE_MIN, PATH_MAX_MM, FROM_METAL_MAX = 97.0, 5.0, 0.02
+REFERENCE_RUNS = 3  # grey-steel runs of each shape (their patches and noise differ): the range a cut varies over
 REF_SLACK_MM = 1.0  # the flame's path may be this much worse than on grey steel (sensor noise differs)
 
 
@@ -33,7 +34,7 @@ def cases(shapes: list[str], finishes: list[str], paints: list[str], lights: lis
     """Every (finish, paint) pair once, its shape and light turning with it; plus each shape in grey
     steel, red, normal light: the reference the textured cases are compared with."""
     out = [{"shape": s, "finish": "grey_steel", "paint": "red", "light": "normal", "reference": True}
-           for s in shapes]
+           for _ in range(REFERENCE_RUNS) for s in shapes]
     for fi, f in enumerate(finishes):
         for pi, p in enumerate(paints):
             out.append({"shape": shapes[(fi + pi) % len(shapes)], "finish": f, "paint": p,
@@ -44,22 +45,27 @@ def cases(shapes: list[str], finishes: list[str], paints: list[str], lights: lis
     return out
 
 
-def true_delta_e(finish: str, paint: str, light: str) -> float:
+def true_delta_e(finish: str, paint: str, light: str, shaded: bool = False) -> float:
     """ΔE76 between the paint and the nearest colour of the metal (its base and its patches), lit by
-    ``light`` at full shading, in its shadow too: the twin's truth, no camera involved."""
+    ``light`` at full shading, in its shadow too: the twin's truth, no camera involved. ``shaded``: the
+    paint on one face and the metal on another, one of them turned from the lamp by as much as a view's
+    faces differ (planners.paint_color.SHADES): white paint turned away is grey, orange is brown."""
     from skimage.color import deltaE_cie76, rgb2lab
 
+    from planners.paint_color import SHADES
     from sim.appearance import FINISHES, LIGHTS, PAINTS
 
     f, li = FINISHES[finish], LIGHTS[light]
     levels = [1.0] + ([li.shadow] if li.shadow is not None else [])
     metals = [f.base] + ([f.patch] if f.share > 0 else [])
+    turns = [(1.0, 1.0)] + ([(s, 1.0) for s in SHADES] + [(1.0, s) for s in SHADES] if shaded else [])
     best = np.inf
     for lv in levels:
         gain = lv * li.level * np.asarray(li.white)
         lab = lambda rgb: rgb2lab(np.clip(np.asarray(rgb) * gain, 0, 1).reshape(1, 1, 3)).reshape(3)  # noqa: E731
         for m in metals:
-            best = min(best, float(deltaE_cie76(lab(PAINTS[paint]), lab(m))))
+            for sp, sm in turns:
+                best = min(best, float(deltaE_cie76(lab(sp * np.asarray(PAINTS[paint])), lab(sm * np.asarray(m)))))
     return best
 
 
@@ -139,7 +145,8 @@ def run_appearance_bench(cfg: CellConfig, cfg_path: Path, shapes: list[str], fin
            "commissioned": commissioned, "machine": machine_info(), "code": code_info(), "cases": []}
     reference_path: dict[str, float] = {}
     for i, c in enumerate(todo):
-        rec = dict(c, true_delta_e=round(true_delta_e(c["finish"], c["paint"], c["light"]), 2))
+        rec = dict(c, true_delta_e=round(true_delta_e(c["finish"], c["paint"], c["light"]), 2),
+                   shaded_delta_e=round(true_delta_e(c["finish"], c["paint"], c["light"], shaded=True), 2))
         com = commissioned[c["paint"]]
         t1 = time.perf_counter()
         if not com["ok"]:
@@ -157,6 +164,7 @@ def run_appearance_bench(cfg: CellConfig, cfg_path: Path, shapes: list[str], fin
                            terminated_by=result.terminated_by, views=result.steps,
                            cuts=cut.feasible_branches if cut else 0, coverage=result.coverage_percent,
                            path_max_mm=acc.path_to_line_max_mm if acc else None,
+                           pose_max_mm=acc.pose_to_line_max_mm if acc else None,
                            cut_coverage=acc.cut_coverage if acc else None,
                            from_metal=paint_from_metal(run_dir, load_scene(c["ref"])),
                            cell_delta_e=paint.delta_e if paint else None,
@@ -168,7 +176,7 @@ def run_appearance_bench(cfg: CellConfig, cfg_path: Path, shapes: list[str], fin
                            path_max_mm=None, from_metal=None)
         rec["wall_s"] = round(time.perf_counter() - t1, 1)
         if c["reference"] and rec.get("path_max_mm") is not None:
-            reference_path[c["shape"]] = rec["path_max_mm"]
+            reference_path[c["shape"]] = max(reference_path.get(c["shape"], 0.0), rec["path_max_mm"])
         rec["verdict"] = verdict(rec, None if c["reference"] else reference_path.get(c["shape"]))
         doc["cases"].append(rec)
         write_json(out / "appearance.json", doc)
@@ -205,9 +213,21 @@ def summarize(rows: list[dict]) -> dict:
         "from_metal_ok": sum(r["from_metal"] is not None and r["from_metal"] <= FROM_METAL_MAX for r in done),
         "from_metal_max": worst("from_metal", done),
         "inseparable_refused": sum(r["verdict"] == "refused" for r in insep),
+        # lit apart, but alike when one of them is on a face turned from the lamp (white paint and grey steel)
+        "shade_alike": sum(r.get("shaded_delta_e", 99) < SEPARABLE_DE for r in sep),
+        "shade_alike_refused": sum(r.get("shaded_delta_e", 99) < SEPARABLE_DE
+                                   and r["terminated_by"] == "paint_not_separable" for r in sep),
+        "shade_apart": sum(r.get("shaded_delta_e", 0) >= SEPARABLE_DE for r in sep),
+        "shade_apart_ok": sum(r.get("shaded_delta_e", 0) >= SEPARABLE_DE and r["verdict"] == "ok" for r in sep),
+        "shade_apart_refused": sum(r.get("shaded_delta_e", 0) >= SEPARABLE_DE
+                                   and r["terminated_by"] == "paint_not_separable" for r in sep),
         "errors": sum(r["verdict"] == "error" for r in rows),
-        "reference_path_max_mm": {r["shape"]: r["path_max_mm"] for r in rows if r["reference"]},
-        "reference_coverage": {r["shape"]: r["coverage"] for r in rows if r["reference"]},
+        "pose_ok": sum(r.get("pose_max_mm") is not None and r["pose_max_mm"] <= PATH_MAX_MM for r in done),
+        "pose_max_mm": worst("pose_max_mm", done),
+        "reference_path_max_mm": {sh: max(r["path_max_mm"] or 0 for r in rows if r["reference"] and r["shape"] == sh)
+                                  for sh in dict.fromkeys(r["shape"] for r in rows if r["reference"])},
+        "reference_coverage": {sh: min(r["coverage"] or 0 for r in rows if r["reference"] and r["shape"] == sh)
+                               for sh in dict.fromkeys(r["shape"] for r in rows if r["reference"])},
     }
 
 
@@ -221,7 +241,7 @@ def report(doc: dict) -> str:
     lines = [f"# Appearance bench ({doc['created']})", "",
              f"{len(b['shapes'])} shapes, {len(b['finishes'])} finishes, {len(b['paints'])} paints, "
              f"{len(b['lights'])} lights; {s['cases']} textured cases (every finish x paint pair) and "
-             f"{len(b['shapes'])} references (grey steel, red, normal light); planner {b['planner']}; each paint "
+             f"{REFERENCE_RUNS * len(b['shapes'])} references (each shape {REFERENCE_RUNS} times in grey steel, red, normal light); planner {b['planner']}; each paint "
              f"commissioned on {b['commission_sample'][0]} under {b['commission_sample'][1]} light; "
              f"{doc.get('wall_s', 0):.0f} s.", "",
              f"- separable (true ΔE76 >= {SEPARABLE_DE:g}): {s['separable']} cases, {s['separable_done']} done, "
@@ -231,18 +251,24 @@ def report(doc: dict) -> str:
              f"  - flame to true line <= {PATH_MAX_MM:g} mm over the lit motion: {s['path_ok']} of "
              f"{s['separable_done']} (largest {_f(s['path_max_mm'])} mm); no worse than the same shape on grey "
              f"steel (+{REF_SLACK_MM:g} mm): {s['path_as_reference']} of {s['separable_done']}",
+             f"  - the planned cut poses within {PATH_MAX_MM:g} mm of the true line: {s['pose_ok']} of "
+             f"{s['separable_done']} (largest {_f(s['pose_max_mm'])} mm)",
              f"  - paint cloud from the metal <= {100 * FROM_METAL_MAX:g} %: {s['from_metal_ok']} of "
              f"{s['separable_done']} (largest {_f(100 * s['from_metal_max'] if s['from_metal_max'] is not None else None, '{:.2f}')} %)",
              f"- inseparable (true ΔE76 < {SEPARABLE_DE:g}): {s['inseparable']} cases, refused at the initial view "
              f"with 0 cuts: {s['inseparable_refused']}",
+             f"- of the separable, alike when one of them is turned from the lamp (shaded ΔE76 < {SEPARABLE_DE:g}: "
+             f"white paint and grey steel): {s['shade_alike']}, refused {s['shade_alike_refused']}; apart however "
+             f"lit: {s['shade_apart']}, refused {s['shade_apart_refused']}, every line met {s['shade_apart_ok']}",
              f"- errors: {s['errors']}", "",
-             "| shape | finish | paint | light | true ΔE76 | cell's ΔE76 | ended | views | coverage % | flame to line max mm | "
-             "from metal % | verdict |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| shape | finish | paint | light | true ΔE76 | shaded ΔE76 | cell's ΔE76 | ended | views | coverage % | flame to line max mm | "
+             "poses max mm | from metal % | verdict |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in doc["cases"]:
         lines.append(f"| {r['shape']} | {r['finish']} | {r['paint']} | {r['light']} | {r['true_delta_e']:.1f} | "
+                     f"{_f(r.get('shaded_delta_e'))} | "
                      f"{_f(r.get('cell_delta_e'))} | {r['terminated_by']} | {r['views']} | {_f(r['coverage'])} | "
-                     f"{_f(r['path_max_mm'], '{:.2f}')} | "
+                     f"{_f(r['path_max_mm'], '{:.2f}')} | {_f(r.get('pose_max_mm'), '{:.2f}')} | "
                      f"{_f(100 * r['from_metal'] if r['from_metal'] is not None else None, '{:.2f}')} | "
                      f"{r['verdict']}{' (reference)' if r['reference'] else ''} |")
     return "\n".join(lines) + "\n"
@@ -260,7 +286,7 @@ def cli_appearance(args, out: Path) -> int:
     paints = parse_list(args.paints, tuple(PAINTS), "paints", tuple(PAINTS))
     lights = parse_list(args.lights, tuple(LIGHTS), "lights", tuple(LIGHTS))
     cfg, cfg_path = load_cell_config(args.config)
-    n = len(finishes) * len(paints) + len(shapes)
+    n = len(finishes) * len(paints) + REFERENCE_RUNS * len(shapes)
     print(f"bench --appearance: {n} cases -> {out}", file=sys.stderr)
     doc = run_appearance_bench(cfg, cfg_path, shapes, finishes, paints, lights, out)
     print(out / "appearance.md")

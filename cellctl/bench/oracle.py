@@ -198,7 +198,7 @@ class TwinViews:
         # the paint's colour fitted on the initial view, as a scan fits it
         self.paint = PaintSegmenter(pcfg.paint)
         cloud = self._cloud(T0)
-        self.paint.fit_view(cloud.rgb, cloud.xyz, pcfg.grid.lo_m[2])
+        self.paint.fit_view(cloud.rgb, cloud.xyz, pcfg.grid.lo_m[2], workspace=(pcfg.grid.lo_m, pcfg.grid.hi_m))
 
     def _cloud(self, T: np.ndarray):
         cam = self.twin.camera

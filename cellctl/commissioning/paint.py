@@ -20,6 +20,7 @@ import numpy as np
 from cellctl.commissioning.config_files import backup, point_config_at, write_record
 from cellctl.config import CellConfig, cell_planners_config, load_cell_config
 from cellctl.scan.modes import MODES
+from configs import CONFIG_DIR
 from drivers.interfaces import DeviceError, RGBDFrame
 from planners.paint_calibration import PaintCalibration, calibrate_paint, regions, sample_mask
 
@@ -173,7 +174,11 @@ def cli_paint(args) -> int:
     rows.append(("written", str(out)))
     if old is not None:
         rows.append(("previous", f"kept as {old}"))
-    rows.append(("config", point_config_at(cfg_path, out, "paint_file", "calibrate paint")))
+    if cfg_path.resolve().parent == CONFIG_DIR.resolve():  # the shipped configs stay as shipped
+        rows.append(("config", f"{cfg_path.name} is a shipped config and is left as it is: in a copy of it, set "
+                               f"paint_file: {out.resolve()}"))
+    else:
+        rows.append(("config", point_config_at(cfg_path, out, "paint_file", "calibrate paint")))
     for k, v in rows:
         print(f"  {k:<15}{v}")
     return 0

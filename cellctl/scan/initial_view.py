@@ -48,7 +48,7 @@ def run_initial_view(spec: JobSpec, hooks: Hooks) -> tuple[ScanResult, Path]:
         cloud = clouds.frame_to_base_cloud(frame.color, frame.depth, K, T, lens=frame.intrinsics.lens)
         surface = clouds.voxel_dedup(cloud, g.surface_voxel_m)
         seg = PaintSegmenter(pcfg.paint)  # as a scan's first step: fitted to the piece, checked
-        result.paint = seg.fit_view(surface.rgb, surface.xyz, g.lo_m[2])
+        result.paint = seg.fit_view(surface.rgb, surface.xyz, g.lo_m[2], workspace=(g.lo_m, g.hi_m))
         if not result.paint.ok:
             result.terminated_by = "paint_not_separable"
             raise ScanError(f"paint_not_separable: {result.paint.reason}", "paint_not_separable")

@@ -18,6 +18,7 @@ from typing import Callable, TypeVar
 import numpy as np
 
 from cellctl.config import MotionConfig
+from cellctl.scan.artifacts import paint_overlay
 from cellctl.scan.cut import torch_shape
 from cellctl.scan.result import ScanResult, StepRecord
 from drivers.interfaces import (Arm, ArmAbilities, DeviceError, JointTrajectory, RGBDCamera, RGBDFrame,
@@ -38,6 +39,8 @@ from planners.motion.view_motion import ViewMotionPlanner
 from planners.paint_color import PaintSegmenter
 from planners.registry import make_planner
 from planners.views import look_at_rotations, poses_from
+
+PAINT_VIEW_STEP = 2  # the per-view paint pictures at half the camera's resolution (424 x 240 of a D435)
 
 Out = TypeVar("Out")
 
@@ -108,6 +111,7 @@ class ScanJob:
         self.drawing = self._drawing_total.cloud
         self.paint = PaintSegmenter(pcfg.paint)  # fitted on the initial view, then the paint mask of every view
         self.view_paint: np.ndarray | None = None  # (H, W) bool: the last view's paint on its picture
+        self.paint_views: list[np.ndarray] = []  # each view's picture with its paint, halved: paint_view<k>.png
         self.paint_view: tuple[np.ndarray, np.ndarray] | None = None  # the initial image and what was paint in it
         self.empty_frames = 0
         self.frames_without_depth = 0  # captures with no valid depth pixel since the last view that had one
@@ -293,6 +297,8 @@ class ScanJob:
         on = np.zeros(h * w, dtype=bool)
         on[pixels[paint]] = True
         self.view_paint = on.reshape(h, w)  # what this view took as paint, on its picture (Rerun, the tablet)
+        self.paint_views.append(paint_overlay(frame.color[::PAINT_VIEW_STEP, ::PAINT_VIEW_STEP],
+                                              self.view_paint[::PAINT_VIEW_STEP, ::PAINT_VIEW_STEP]))
         self.drawing = self._drawing_total.add(cloud.select(paint))
         # the rays that carve free space: every integrate_stride_px-th pixel of the same filtered frame
         rays = cloud.select(clouds.on_stride(pixels, frame.depth.shape[1], g.integrate_stride_px))
@@ -305,7 +311,8 @@ class ScanJob:
         """The first view with depth fits the paint's colour to this piece and checks that what looks like
         paint is a line apart from its metal (rule 1: where the cell cannot tell paint from metal it refuses).
         A refusal ends the scan here, before any further motion, with the picture of what was paint."""
-        check = self.paint.fit_view(cloud.rgb, cloud.xyz, self.pcfg.grid.lo_m[2])
+        check = self.paint.fit_view(cloud.rgb, cloud.xyz, self.pcfg.grid.lo_m[2],
+                                     workspace=(self.pcfg.grid.lo_m, self.pcfg.grid.hi_m))
         h, w = frame.color.shape[:2]
         on = np.zeros(h * w, dtype=bool)
         on[pixels] = self.paint.paint_points(cloud.rgb, cloud.xyz)

@@ -234,4 +234,6 @@ def _keep_views(job: ScanJob, run_dir: Path, scene, pcfg, planner: str, result: 
         write("view0.png", save_png, job.first_color)
     if job.paint_view is not None:  # what the initial view took as paint (a refused piece: why)
         write("paint_check.png", save_png, paint_overlay(*job.paint_view))
+    for k, picture in enumerate(job.paint_views):  # what every view took as paint (the tablet shows them)
+        write(f"paint_view{k}.png", save_png, picture)
     return unsaved

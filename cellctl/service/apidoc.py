@@ -62,7 +62,9 @@ def examples() -> dict[str, BaseModel]:
             result=result,
             artifacts=Artifacts(dir=f"/var/lib/scrapcell/jobs/{J}",
                                 files=["coverage.png", "cut_path.csv", "cut_path.json", "cut_trajectory.npz",
-                                       "drawing.ply", "result.json", "scan.rrd", "surface.ply", "view0.png"])),
+                                       "drawing.ply", "paint_check.png", "paint_view0.png", "paint_view1.png",
+                                       "paint_view2.png", "paint_view3.png", "paint_view4.png", "result.json",
+                                       "scan.rrd", "surface.ply", "view0.png"])),
         "list_request": ListJobsRequest(limit=5, state="done"),
         "list": JobList(cell_id="sim-1", total=42, limit=5, jobs=[
             JobBrief(job_id=J, state="done", created_at=T0, updated_at="2025-03-14T10:15:31.906Z",
@@ -281,7 +283,9 @@ request_id) to send once the cell answers again.
 The job's record, kept in the cell's SQLite store across restarts: request, state and its transitions,
 last progress, result summary, error, and the artifacts folder on the cell controller
 (`<data_dir>/jobs/<job_id>/`: result.json, drawing.ply, surface.ply, cut_path.json/.csv,
-cut_trajectory.npz, scan.rrd, coverage.png, view0.png).
+cut_trajectory.npz, scan.rrd, coverage.png, view0.png; paint_check.png, the initial view with what the paint
+check took as paint in cyan; paint_view<k>.png, every view k = 0, 1, ... at half the camera's resolution with
+what it took as paint in cyan).
 
 {_json(ex["record"])}
 

@@ -4,6 +4,7 @@ with its torch axes, fetched through the job API's files keys (as any client wou
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from cellctl.service.client import CellClient
 from planners.clouds import voxel_keys
 
 FILES = ("cut_path.json", "drawing.ply", "surface.ply")
+PAINT_PICTURE = re.compile(r"^paint_(?:view(\d+)|check)\.png$")
 TORCH_AXES = 24  # torch axes drawn along all cuts together: enough to read the tilt, few enough to read at all
 TORCH_LEN_M = 0.05
 
@@ -53,12 +55,15 @@ def thin(xyz: np.ndarray, n_max: int, *extra: np.ndarray) -> tuple[np.ndarray, .
         voxel *= 1.25
 
 
-def fetch(client: CellClient, job_id: str, cache: Path) -> dict[str, Path]:
-    """The job's 3-D files in ``cache`` (fetched once; fetched again only if the cell's copy changed)."""
+def fetch(client: CellClient, job_id: str, cache: Path, names=FILES) -> dict[str, Path]:
+    """The job's files of ``names`` (default: its 3-D files; a callable picks them from the job's list) in
+    ``cache``, fetched once, and again only if the cell's copy changed."""
     cache.mkdir(parents=True, exist_ok=True)
     have = {f.name: f for f in client.files(job_id).files}
+    if callable(names):
+        names = [n for n in have if names(n)]
     out = {}
-    for name in FILES:
+    for name in names:
         if name not in have:
             continue
         dest, stamp = cache / name, cache / f"{name}.sha256"
@@ -66,6 +71,17 @@ def fetch(client: CellClient, job_id: str, cache: Path) -> dict[str, Path]:
             client.fetch(job_id, name, dest)
             stamp.write_text(have[name].sha256)
         out[name] = dest
+    return out
+
+
+def paint_pictures(client: CellClient, job_id: str, cache: Path) -> list[tuple[str, Path]]:
+    """Each view's picture with what it took as paint (paint_view<k>.png, in view order), and the check's
+    picture of a refused piece (paint_check.png) when the job has no view of its own: (caption, file)."""
+    files = fetch(client, job_id, cache, lambda n: PAINT_PICTURE.match(n) is not None)
+    views = sorted((int(m.group(1)), f) for n, f in files.items() if (m := PAINT_PICTURE.match(n)) and m.group(1))
+    out = [(f"View {k + 1}", f) for k, f in views]
+    if not out and "paint_check.png" in files:
+        out.append(("The first view", files["paint_check.png"]))
     return out
 
 

@@ -374,6 +374,8 @@ def register(cfg: TabletConfig, yard: Yard, accounts: AccountBook) -> None:
                 return
             if r.error:
                 ui.label(f"Error: {r.error}").classes("text-xl text-red-9 q-px-md").props("data-testid=job-error")
+            paint_box = ui.column().classes("q-ma-md w-full").props("data-testid=paint-views")
+            asyncio.get_event_loop().create_task(fill_paint(paint_box))
             s = r.result
             if s is None:
                 return
@@ -416,6 +418,28 @@ def register(cfg: TabletConfig, yard: Yard, accounts: AccountBook) -> None:
             with box:
                 ui.label("Fetching the 3-D view...").classes("text-lg")
             asyncio.get_event_loop().create_task(fill_3d(box))
+
+        async def fill_paint(box):
+            """Every view's camera picture, what the cell took as paint in cyan: where an operator sees
+            that rust or a stray mark was taken for the line before the torch is lit."""
+            cache = Path(cfg.state_dir) / "jobs" / cell_id / job_id
+            try:
+                pictures = await run.io_bound(lambda: geometry.paint_pictures(yard.client(cell_id), job_id, cache))
+            except (*NET_ERRORS, OSError, ValueError) as e:
+                box.clear()
+                with box:
+                    ui.label(f"No paint pictures: {_say(e)}").classes("text-lg text-red-9")
+                return
+            box.clear()
+            if not pictures:
+                return
+            with box:
+                ui.label("What the camera took as paint (cyan)").classes("text-2xl font-bold")
+                with ui.row().classes("gap-3"):
+                    for caption, path in pictures:
+                        with ui.column().classes("gap-1"):
+                            ui.image(str(path)).classes("w-[320px]").props(f"data-testid=paint-{path.stem}")
+                            ui.label(caption).classes("text-lg")
 
         async def fill_3d(box):
             cache = Path(cfg.state_dir) / "jobs" / cell_id / job_id
