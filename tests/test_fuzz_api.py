@@ -31,6 +31,7 @@ from cellctl.service import api
 from cellctl.service.api import (CHUNK_MAX, ERROR_CODES, MAX_JSON_DEPTH, MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES,
                                  PLANNER_NAMES, REQUEST_ID_PATTERN, ApiError, ApiModel, CancelRequest, FileChunkRequest, CellStatus, ErrorReply, JobRecord, ListJobsRequest, ScanDrawingRequest,
                                  parse_payload)
+from cellctl.service.api import CommissionPaintRequest
 from cellctl.service.loopback import ServiceProcess
 from cellctl.service.server import CellService
 from cellctl.service.store import JobStore
@@ -42,7 +43,7 @@ FUZZ = settings(max_examples=1300, deadline=None, derandomize=True, database=Non
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
                                        HealthCheck.filter_too_much, HealthCheck.large_base_example])
 OVERSIZE_MAX = MAX_MESSAGE_BYTES - 32 * 1024  # oversized, yet under the transport cap: the service must answer
-REQUEST_MODELS = (ScanDrawingRequest, ListJobsRequest, CancelRequest, FileChunkRequest)
+REQUEST_MODELS = (ScanDrawingRequest, ListJobsRequest, CancelRequest, FileChunkRequest, CommissionPaintRequest)
 
 
 # --- generated JSON, with the tokens json.dumps cannot write ------------------------------------------------
@@ -137,8 +138,15 @@ VALID = {
         {}, optional={"schema_version": st.just(1), "reason": st.none() | st.text(max_size=200)}),
     FileChunkRequest: st.fixed_dictionaries(
         {}, optional={"schema_version": st.just(1), "offset": st.integers(0, 2**40), "length": st.integers(1, CHUNK_MAX)}),
+    CommissionPaintRequest: st.fixed_dictionaries(
+        {"name": st.text(alphabet="abcXYZ019 -_", min_size=1, max_size=40)},
+        optional={"schema_version": st.just(1), "requested_by": st.none() | REQUESTED_BY,
+                  "twin_finish": st.none() | st.sampled_from(["rust_red", "galvanized"]),
+                  "twin_paint": st.none() | st.sampled_from(["pink", "white"]),
+                  "twin_light": st.none() | st.sampled_from(["dim", "normal"]), "twin_no_paint": st.booleans()}),
 }
-REQUIRED = {ScanDrawingRequest: True, ListJobsRequest: False, CancelRequest: False, FileChunkRequest: False}
+REQUIRED = {ScanDrawingRequest: True, ListJobsRequest: False, CancelRequest: False, FileChunkRequest: False,
+            CommissionPaintRequest: True}
 
 
 @dataclass
@@ -395,7 +403,7 @@ def test_every_malformed_payload_gets_a_coded_error(model):
     run()
     print(f"\n{model.__name__}: {sum(seen.values())} payloads ({len(distinct)} distinct): {dict(seen)}")
     assert len(distinct) >= EXAMPLES
-    assert {"wrong_type", "out_of_range" if model is not CancelRequest else "too_long", "unknown_field",
+    assert {"wrong_type", "out_of_range" if model not in (CancelRequest, CommissionPaintRequest) else "too_long", "unknown_field",
             "invalid_utf8", "oversized", "not_an_object", "several_fields", "duplicate_key"} <= set(seen), seen
 
 

@@ -2,7 +2,7 @@
 following scan that uses it, samples that must be refused, the look of a scene named in its reference,
 and the appearance bench's cases. Real twin pictures and scans.
 
-Tests of: planners.paint_calibration, cellctl.commissioning.paint, cellctl.commissioning.config_files,
+Tests of: planners.paint_calibration, cellctl.scan.paint_sample, cellctl.commissioning.paint, cellctl.config_files,
 sim.scenes.sample, cellctl.bench.appearance."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import pytest
 import yaml
 from skimage.color import deltaE_cie76, rgb2lab
 
-from cellctl.bench.appearance import cases, paint_from_metal, true_delta_e, verdict
+from cellctl.bench.appearance import cases, drawn_cases, paint_from_metal, true_delta_e, verdict
 from cellctl.cli import main
 from cellctl.config import cell_planners_config, load_cell_config
 from cellctl.scan.job import ScanError
@@ -154,6 +154,9 @@ def test_the_appearance_bench_covers_the_set_and_knows_separable_from_not():
     assert true_delta_e("grey_steel", "white", "normal") > 40 > 15 > true_delta_e("grey_steel", "white", "normal",
                                                                                     shaded=True)
     assert len([c for c in cs if c["reference"]]) >= 2 * len(shapes)
+    (g,) = drawn_cases(["scrap:0:5"])  # a generated piece in the look its generator draws
+    a = load_scene(g["ref"]).appearance
+    assert g["ref"] == "scrap:0:5@drawn" and (g["finish"], g["paint"], g["light"]) == (a.finish, a.paint, a.light)
     refused = dict(true_delta_e=10.0, terminated_by="paint_not_separable", views=0, cuts=0)
     assert verdict(refused) == "refused"
     assert verdict({**refused, "true_delta_e": 30.0}) == "refused, separable"
@@ -164,3 +167,36 @@ def test_the_appearance_bench_covers_the_set_and_knows_separable_from_not():
     assert verdict({**done, "path_max_mm": 12.0}, reference_path_mm=11.5) == "ok"  # as on grey steel
     assert verdict({**done, "from_metal": 0.3, "coverage": 90.0}) == "coverage + from metal"
     assert verdict({**done, "true_delta_e": 10.0}) == "not refused"
+
+
+@pytest.mark.timeout(600)
+def test_the_paint_is_commissioned_through_the_job_api_and_the_next_job_uses_it(tmp_path):
+    """The tablet's way: `cell/<id>/paint/commission` over Zenoh on loopback, on a running service; a
+    sample without paint is refused with the cell's paint unchanged; the next job finds the pink line."""
+    from cellctl.service.api import CommissionPaintRequest
+    from cellctl.service.client import CellError
+    from cellctl.service.loopback import ServiceProcess
+
+    svc = ServiceProcess(tmp_path / "cell", scene_dirs=[str(tmp_path)]).start()
+    try:
+        with svc.client(timeout_s=60.0) as c:
+            assert c.paint().paint.name == "red" and c.paint().paint_file is None
+            bare = c.commission_paint(CommissionPaintRequest(name="pink", twin_finish="rust_red", twin_no_paint=True))
+            assert not bare.ok and "no paint in the sample" in bare.reason and bare.picture_png_base64
+            assert c.paint().paint.name == "red"
+            with pytest.raises(CellError) as e:
+                c.commission_paint({"name": "pink", "twin_paint": "fuchsia"})
+            assert e.value.code == "invalid_request" and "fuchsia" in e.value.message
+            done = c.commission_paint({"name": "pink", "twin_finish": "rust_red", "requested_by": "ana"})
+            assert done.ok and done.paint.name == "pink" and done.delta_e >= 15
+            assert c.paint().paint.name == "pink" and c.paint().paint_file.endswith("paint.yaml")
+            assert "paint_file: paint.yaml" in svc.config.read_text()  # a restart keeps it
+            job = c.submit({"scene": str(_pink_box(tmp_path)), "max_steps": 2})
+            with pytest.raises(CellError) as e:  # the camera is the job's now
+                c.commission_paint({"name": "red"})
+            assert e.value.code == "cell_busy"
+            rec = c.wait(job.job_id, timeout_s=400)
+            assert rec.state == "done", rec.error
+            assert rec.result.paint.ok
+    finally:
+        svc.stop()

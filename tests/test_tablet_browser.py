@@ -155,6 +155,24 @@ def _tour(page, tab, cell: dict, shots: Path, tmp_path: Path) -> None:
             row.click()
             expect(page.get_by_test_id("cut-fraction")).to_be_visible()
 
+            # the paint commissioned from the tablet: white on zinc is refused with the picture, red on rust taken
+            page.get_by_test_id("home").click()
+            page.get_by_test_id("cell-sim-1").click()
+            expect(page.get_by_test_id("paint-now")).to_contain_text("lines of red paint", timeout=LIVE_S)
+            page.get_by_test_id("paint-name").fill("white")
+            page.get_by_test_id("paint-finish").fill("galvanized")
+            page.get_by_test_id("commission").click()
+            expect(page.get_by_test_id("paint-refused")).to_contain_text("cannot be told from this metal",
+                                                                          timeout=LIVE_S)
+            expect(page.get_by_test_id("paint-picture")).to_be_visible()
+            expect(page.get_by_test_id("paint-now")).to_contain_text("lines of red paint")
+            page.get_by_test_id("paint-name").fill("red")
+            page.get_by_test_id("paint-finish").fill("rust_red")
+            page.get_by_test_id("commission").click()
+            expect(page.get_by_test_id("paint-ok")).to_contain_text("now finds lines of red paint", timeout=LIVE_S)
+            expect(page.get_by_test_id("paint-now")).to_contain_text("cellctl calibrate paint")
+            page.screenshot(path=shots / "tablet-paint.png", full_page=True)
+
             # the cell goes away: the page says so, and recovers when it is back, without a reload
             page.get_by_test_id("home").click()
             expect(page.get_by_test_id("cell-sim-1")).to_contain_text("Ready")

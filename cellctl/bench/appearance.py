@@ -45,6 +45,19 @@ def cases(shapes: list[str], finishes: list[str], paints: list[str], lights: lis
     return out
 
 
+def drawn_cases(refs: list[str]) -> list[dict]:
+    """Generated pieces each in the look the generator draws for it (``@drawn``, its own seeded stream)."""
+    from sim.appearance import drawn_appearance
+    from sim.scenes.scrap import parse_ref
+
+    out = []
+    for i, ref in enumerate(refs):
+        a = drawn_appearance(parse_ref(ref))
+        out.append({"shape": ref, "finish": a.finish, "paint": a.paint, "light": a.light, "reference": False,
+                    "seed": a.seed, "ref": f"{ref}@drawn"})
+    return out
+
+
 def true_delta_e(finish: str, paint: str, light: str, shaded: bool = False) -> float:
     """ΔE76 between the paint and the nearest colour of the metal (its base and its patches), lit by
     ``light`` at full shading, in its shadow too: the twin's truth, no camera involved. ``shaded``: the
@@ -91,7 +104,7 @@ def paint_from_metal(run_dir: Path, scene) -> float | None:
 
 def commission_paints(cfg: CellConfig, cfg_path: Path, paints: list[str], out: Path) -> dict[str, dict]:
     """Each paint commissioned on the yard's sample; returns, per paint, the paint file or the refusal."""
-    from cellctl.commissioning.paint import capture_in_twin, commission, write_paint_file
+    from cellctl.scan.paint_sample import capture_in_twin, commission, write_paint_file
 
     done = {}
     for p in paints:
@@ -130,18 +143,20 @@ def verdict(c: dict, reference_path_mm: float | None = None) -> str:
 
 
 def run_appearance_bench(cfg: CellConfig, cfg_path: Path, shapes: list[str], finishes: list[str],
-                         paints: list[str], lights: list[str], out: Path, *, planner: str = "gnbv") -> dict:
+                         paints: list[str], lights: list[str], out: Path, *, planner: str = "gnbv",
+                         generated: list[str] | None = None) -> dict:
+    """The built-in ``shapes`` over the set, or the ``generated`` pieces each in its drawn look."""
     from cellctl.scan.run import run_job
     from cellctl.scan.spec import JobSpec
     from sim.scenes import load_scene
 
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    commissioned = commission_paints(cfg, cfg_path, sorted(set(paints) | {"red"}), out)
-    todo = cases(shapes, finishes, paints, lights)
+    todo = drawn_cases(generated) if generated else cases(shapes, finishes, paints, lights)
+    commissioned = commission_paints(cfg, cfg_path, sorted({c["paint"] for c in todo} | {"red"}), out)
     doc = {"created": datetime.now().astimezone().isoformat(timespec="seconds"), "complete": False,
            "bench": {"shapes": shapes, "finishes": finishes, "paints": paints, "lights": lights, "planner": planner,
-                     "commission_sample": list(COMMISSION_SAMPLE)},
+                     "commission_sample": list(COMMISSION_SAMPLE), "generated": generated},
            "commissioned": commissioned, "machine": machine_info(), "code": code_info(), "cases": []}
     reference_path: dict[str, float] = {}
     for i, c in enumerate(todo):
@@ -238,12 +253,16 @@ def _f(x, fmt="{:.1f}") -> str:
 def report(doc: dict) -> str:
     s = doc["summary"]
     b = doc["bench"]
+    if b.get("generated"):
+        intro = (f"{s['cases']} generated pieces (scrap:S:I@drawn), each in the look the generator draws for it "
+                 f"from its own seeded stream")
+    else:
+        intro = (f"{len(b['shapes'])} shapes, {len(b['finishes'])} finishes, {len(b['paints'])} paints, "
+                 f"{len(b['lights'])} lights; {s['cases']} textured cases (every finish x paint pair, the shape and "
+                 f"the light turning with it) and {REFERENCE_RUNS} references a shape (grey steel, red, normal light)")
     lines = [f"# Appearance bench ({doc['created']})", "",
-             f"{len(b['shapes'])} shapes, {len(b['finishes'])} finishes, {len(b['paints'])} paints, "
-             f"{len(b['lights'])} lights; {s['cases']} textured cases (every finish x paint pair) and "
-             f"{REFERENCE_RUNS * len(b['shapes'])} references (each shape {REFERENCE_RUNS} times in grey steel, red, normal light); planner {b['planner']}; each paint "
-             f"commissioned on {b['commission_sample'][0]} under {b['commission_sample'][1]} light; "
-             f"{doc.get('wall_s', 0):.0f} s.", "",
+             f"{intro}; planner {b['planner']}; each paint commissioned (`cellctl calibrate paint` in the twin) on "
+             f"{b['commission_sample'][0]} under {b['commission_sample'][1]} light; {doc.get('wall_s', 0):.0f} s.", "",
              f"- separable (true ΔE76 >= {SEPARABLE_DE:g}): {s['separable']} cases, {s['separable_done']} done, "
              f"{s['separable_refused']} refused",
              f"  - coverage >= {COVERAGE_MIN:g} %: {s['coverage_ok']} of {s['separable_done']} (least "
@@ -281,14 +300,21 @@ def cli_appearance(args, out: Path) -> int:
     from sim.appearance import FINISHES, LIGHTS, PAINTS
     from sim.scenes import SCENE_NAMES
 
+    generated = None
+    if getattr(args, "generated", None) is not None:
+        from sim.scenes.scrap import scrap_refs
+
+        if args.generated < 1 or args.scenes:
+            raise ValueError("--appearance --generated N takes N >= 1 pieces and no --scenes")
+        generated = scrap_refs(args.generated, args.gen_seed)
     shapes = parse_list(args.scenes, SCENE_NAMES, "scenes", SCENE_NAMES)
     finishes = parse_list(args.finishes, tuple(FINISHES), "finishes", tuple(FINISHES))
     paints = parse_list(args.paints, tuple(PAINTS), "paints", tuple(PAINTS))
     lights = parse_list(args.lights, tuple(LIGHTS), "lights", tuple(LIGHTS))
     cfg, cfg_path = load_cell_config(args.config)
-    n = len(finishes) * len(paints) + REFERENCE_RUNS * len(shapes)
+    n = len(generated) if generated else len(finishes) * len(paints) + REFERENCE_RUNS * len(shapes)
     print(f"bench --appearance: {n} cases -> {out}", file=sys.stderr)
-    doc = run_appearance_bench(cfg, cfg_path, shapes, finishes, paints, lights, out)
+    doc = run_appearance_bench(cfg, cfg_path, shapes, finishes, paints, lights, out, generated=generated)
     print(out / "appearance.md")
     bad = [r for r in doc["cases"] if not r["reference"] and r["verdict"] not in ("ok", "refused")]
     return 0 if not bad else 1

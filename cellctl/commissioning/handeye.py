@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 import trimesh
 
-from cellctl.commissioning.config_files import backup, point_config_at, write_record
+from cellctl.config_files import backup, point_config_at, write_record
 from cellctl.config import CellConfig, MotionConfig
 from cellctl.scan.modes import MODES
 from configs.charuco import CharucoBoardConfig

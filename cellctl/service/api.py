@@ -47,7 +47,7 @@ JobState = Literal["queued", "running", "cancelling", "done", "failed", "cancell
 TERMINAL_STATES = frozenset({"done", "failed", "cancelled", "interrupted"})
 Phase = Literal["queued", "scanning", "planning-cut", "done", "failed", "cancelled", "interrupted"]
 ErrorCode = Literal["bad_json", "invalid_request", "payload_too_large", "unsupported_schema_version", "queue_full",
-                    "cell_not_ready", "not_found", "not_cancellable", "not_ended", "shutting_down", "internal_error"]
+                    "cell_not_ready", "cell_busy", "not_found", "not_cancellable", "not_ended", "shutting_down", "internal_error"]
 
 ERROR_CODES: dict[str, str] = {
     "bad_json": f"the payload is empty, not UTF-8, or not strict JSON: a syntax error, a key given twice, nesting "
@@ -60,6 +60,8 @@ ERROR_CODES: dict[str, str] = {
     "cell_not_ready": "the arm or the camera is not ready (robot unreachable, FCI not active, no camera: the message "
                       "and the status's not_ready_reason say which); nothing was queued, submit again once the status "
                       "shows ready",
+    "cell_busy": "a job is running or queued, or another commissioning is: the camera is in use; commission the "
+                 "paint when the cell is idle",
     "not_found": "no job with this id, or no file of that name in its folder",
     "not_cancellable": "the job already ended (done, failed, cancelled or interrupted)",
     "not_ended": "the job's files are served once it has ended (its folder is still being written)",
@@ -81,6 +83,8 @@ class Keys:
         self.all_events = f"{self.jobs}/*/events"
         self.status = f"{self.root}/status"
         self.alive = f"{self.root}/alive"
+        self.paint = f"{self.root}/paint"
+        self.paint_commission = f"{self.root}/paint/commission"
 
     def job(self, job_id: str) -> str:
         return f"{self.jobs}/{job_id}"
@@ -319,6 +323,56 @@ class JobEvent(ApiModel):
     drawing_points: int | None = Field(None, ge=0)
     time: Timestamp
     message: str | None = Field(None, max_length=2000)
+
+
+class PaintModel(ApiModel):
+    """The yard's paint as the cell knows it: what every job finds the line by."""
+
+    name: str = Field(max_length=40)
+    lab_mean: list[float] = Field(min_length=3, max_length=3, description="L* a* b* (D65), as the sample showed it")
+    source: str = Field(max_length=200, description="where it came from: a commissioning's date, or `default`")
+
+
+class PaintReply(ApiModel):
+    """Reply to ``cell/<cell_id>/paint``: the paint the cell's jobs look for."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    cell_id: CellId
+    paint: PaintModel
+    paint_file: str | None = Field(None, max_length=1000, description="the file it was read from on the cell "
+                                                                       "controller; null: the planners config's")
+
+
+class CommissionPaintRequest(ApiModel):
+    """Query ``cell/<cell_id>/paint/commission``: learn the yard's paint from one picture of a sample (the paint
+    sprayed on a piece of the yard's scrap, held 0.25-0.5 m in front of the camera, the paint in the middle of
+    the picture and bare metal all round it; `cellctl calibrate paint`, docs/HARDWARE.md). Nothing moves. Only
+    while the cell is idle (else `cell_busy`); it takes a few seconds."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    name: str = Field(pattern=r"^[\w -]{1,40}$", max_length=40, description="what the yard calls the paint")
+    requested_by: str | None = Field(None, pattern=r"^[\w .@-]{1,64}$", max_length=64)
+    twin_finish: str | None = Field(None, pattern=r"^[a-z_]{1,40}$", max_length=40, description="twin only: the sample's metal "
+                                    "(sim.appearance FINISHES; default rust_red)")
+    twin_paint: str | None = Field(None, pattern=r"^[a-z_]{1,40}$", max_length=40, description="twin only: its paint (default: "
+                                   "`name`)")
+    twin_light: str | None = Field(None, pattern=r"^[a-z_]{1,40}$", max_length=40, description="twin only: the light (default "
+                                   "normal)")
+    twin_no_paint: bool = Field(False, description="twin only: a sample of bare metal (it is refused)")
+
+
+class CommissionPaintReply(ApiModel):
+    """Reply to a commissioning: ``ok`` and the new paint, which every following job uses, or the reason it
+    was refused (the cell's paint is then unchanged)."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    ok: bool
+    reason: str | None = Field(None, max_length=1000)
+    paint: PaintModel | None = None
+    delta_e: float | None = Field(None, ge=0, description="ΔE76 from the paint to the nearest metal colour round it")
+    metal_lab: list[list[float]] = Field(default_factory=list, max_length=10, description="the metal's colours")
+    picture_png_base64: str | None = Field(None, max_length=700_000, description="the sample's picture at half "
+                                           "size, what the new paint takes as paint in cyan (PNG, base64)")
 
 
 # --- parsing --------------------------------------------------------------------------------------

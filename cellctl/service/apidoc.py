@@ -18,6 +18,7 @@ from cellctl.service.api import (ERROR_CODES, MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYT
                                  CancelReply, CancelRequest, CellStatus, CutAccuracy, CutGap, CutPathSummary,
                                  DryRunSummary, ErrorDetail, ErrorReply, FileChunk, FileChunkRequest, FileInfo, FileList, JobBrief, JobEvent, JobList, JobRecord,
                                  ListJobsRequest, Progress, ResultSummary, ScanDrawingRequest, SubmitReply, Transition)
+from cellctl.service.api import CommissionPaintReply, CommissionPaintRequest, PaintModel, PaintReply
 
 J = "20250314T101500Z-3f9a1c"  # example job id
 T0 = "2025-03-14T10:15:00.120Z"
@@ -148,7 +149,8 @@ def field_table(model: type[BaseModel]) -> str:
 MODELS: list[type[BaseModel]] = [ScanDrawingRequest, SubmitReply, ListJobsRequest, JobList, JobBrief, JobRecord,
                                  Transition, Progress, ResultSummary, CutPathSummary, CutGap, CutAccuracy,
                                  DryRunSummary, PaintSeparation, Artifacts, FileList, FileInfo, FileChunkRequest, FileChunk,
-                                 CancelRequest, CancelReply, CellStatus, JobEvent, ErrorReply, ErrorDetail]
+                                 CancelRequest, CancelReply, CellStatus, PaintReply, PaintModel, CommissionPaintRequest,
+                                 CommissionPaintReply, JobEvent, ErrorReply, ErrorDetail]
 
 
 def render() -> str:
@@ -196,11 +198,11 @@ command line: `cellctl submit|jobs|status --cell <cell_id> --connect <endpoint>`
   while it is, a liveliness subscriber hears it come and go (read the records of the jobs you follow
   when it comes back, see "Job states").
 - **What a client needs** on a router with access control: `query` on `{k}/status`, `{k}/jobs`,
-  `{k}/jobs/*`, `{k}/jobs/*/files`, `{k}/jobs/*/files/*` (and, to command, `{k}/jobs/submit` and
-  `{k}/jobs/*/cancel`), `declare_subscriber` on `{k}/jobs/*/events`, and the liveliness query and
+  `{k}/jobs/*`, `{k}/jobs/*/files`, `{k}/jobs/*/files/*`, `{k}/paint` (and, to command, `{k}/jobs/submit` and
+  `{k}/jobs/*/cancel`, `{k}/paint/commission`), `declare_subscriber` on `{k}/jobs/*/events`, and the liveliness query and
   subscriber on `{k}/alive`.
 - **Rate limit.** The yard router drops a session's submit that follows its previous submit (to any cell)
-  within 0.2 s, and likewise for cancels: the dropped query gets no reply. Reads are not limited.
+  within 0.2 s, and likewise for cancels; a paint commissioning within 1 s of the last: the dropped query gets no reply. Reads are not limited.
 
 ## Key expressions
 
@@ -214,6 +216,8 @@ command line: `cellctl submit|jobs|status --cell <cell_id> --connect <endpoint>`
 | `{k}/jobs/<job_id>/files/<name>` | queryable | [FileChunkRequest](#filechunkrequest) (optional) | [FileChunk](#filechunk) |
 | `{k}/jobs/<job_id>/events` | publication | - | [JobEvent](#jobevent) samples |
 | `{k}/status` | queryable | none (ignored) | [CellStatus](#cellstatus) |
+| `{k}/paint` | queryable | none (ignored) | [PaintReply](#paintreply) |
+| `{k}/paint/commission` | queryable | [CommissionPaintRequest](#commissionpaintrequest) (required) | [CommissionPaintReply](#commissionpaintreply), after a few seconds |
 | `{k}/alive` | liveliness token | - | - |
 
 Any query can instead get an **error reply** (Zenoh `reply_err`) with an [ErrorReply](#errorreply) payload.
@@ -362,6 +366,24 @@ configured D435 connected, with its modes) when it starts, every 10 s while no j
 refused submit or a finished job; `not_ready_reason` then says what is missing:
 
 {_json(ex["status_not_ready"])}
+
+### The paint: `{k}/paint` and `{k}/paint/commission`
+
+The cell finds the line by its paint's colour. `{k}/paint` says which paint that is; `{k}/paint/commission`
+learns a new one from one picture of a sample: the paint sprayed on a piece of the yard's scrap, held
+0.25-0.5 m in front of the camera with the paint in the middle of the picture and bare metal all round it
+(`cellctl calibrate paint` does the same from the command line; docs/HARDWARE.md says how the picture is
+read). Nothing moves. Only an idle cell takes it (a running or queued job holds the camera: `cell_busy`).
+The reply comes when the picture is read, a few seconds later (use a query timeout of 60 s): `ok` true and
+the new paint, which every job submitted after it uses (the cell's config is pointed at the written file,
+so a restart keeps it), or `ok` false and the `reason` (no paint in the sample, paint the cell cannot tell
+from this metal), the cell's paint unchanged. Either way `picture_png_base64` is the picture with what the
+paint takes as paint in cyan. On a twin cell `twin_finish`, `twin_paint`, `twin_light` and `twin_no_paint`
+describe the sample held in front of the twin's camera; a real cell refuses them (`invalid_request`).
+
+```json
+{{"schema_version": 1, "name": "pink", "requested_by": "ana"}}
+```
 
 ## Job states
 

@@ -25,6 +25,7 @@ from cellctl import tls
 from cellctl.service.api import (CHUNK_DEFAULT, TERMINAL_STATES, CancelReply, CancelRequest, CellStatus, ErrorReply,
                                  FileChunk, FileChunkRequest, FileInfo, FileList, JobEvent, JobList, JobRecord, Keys,
                                  ListJobsRequest, ScanDrawingRequest, SubmitReply, dumps)
+from cellctl.service.api import CommissionPaintReply, CommissionPaintRequest, PaintReply
 
 log = logging.getLogger("cellctl.service.client")
 M = TypeVar("M", bound=BaseModel)
@@ -202,6 +203,16 @@ class CellClient:
 
     def status(self, timeout_s: float | None = None) -> CellStatus:
         return self._query(self.keys.status, CellStatus, timeout_s=timeout_s)
+
+    def paint(self) -> PaintReply:
+        """The paint the cell's jobs look for."""
+        return self._query(self.keys.paint, PaintReply)
+
+    def commission_paint(self, request: CommissionPaintRequest | dict, timeout_s: float = 60.0) -> CommissionPaintReply:
+        """Learn the yard's paint from a sample in front of the camera (a few seconds; the cell must be idle)."""
+        req = request if isinstance(request, CommissionPaintRequest) else CommissionPaintRequest.model_validate(request)
+        return self._query(self.keys.paint_commission, CommissionPaintReply, payload=req.model_dump_json().encode(),
+                           timeout_s=timeout_s)
 
     def submit(self, request: ScanDrawingRequest | dict | bytes,
                on_event: Callable[[JobEvent], None] | None = None, *, attempts: int = 3) -> SubmitReply:

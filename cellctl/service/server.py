@@ -29,8 +29,9 @@ from cellctl.config import CellConfig, ServiceConfig
 from cellctl.scan.modes import MODES
 from cellctl.service import logs
 from cellctl.service.api import (MAX_MESSAGE_BYTES, MAX_PAYLOAD_BYTES, TERMINAL_STATES, ApiError, Artifacts,
-                                 CancelReply, CancelRequest, CellStatus, FileChunkRequest, JobList, Keys,
-                                 ListJobsRequest, ResultSummary, ScanDrawingRequest, SubmitReply, dumps, parse_payload)
+                                 CancelReply, CancelRequest, CellStatus, CommissionPaintReply, CommissionPaintRequest,
+                                 FileChunkRequest, JobList, Keys, ListJobsRequest, PaintModel, PaintReply,
+                                 ResultSummary, ScanDrawingRequest, SubmitReply, dumps, parse_payload)
 from cellctl.service.client import CellUnreachable, open_config, zenoh_error
 from cellctl.service.events import JobEvents
 from cellctl.service.files import JobFiles
@@ -164,6 +165,8 @@ class CellService:
             s, k = self.session, self.keys
             self._declared.append(s.declare_queryable(k.status, self._on_status_query))
             self._declared.append(s.declare_queryable(k.jobs_tree, self._on_jobs_query))
+            self._declared.append(s.declare_queryable(k.paint, self._on_paint_query))
+            self._declared.append(s.declare_queryable(k.paint_commission, self._on_commission_query))
             for job_id in recovered:
                 self.events.emit(job_id, "interrupted", "interrupted", message="the service stopped before the job "
                                  "ended")
@@ -261,6 +264,14 @@ class CellService:
         with query:
             self._answer(query, lambda payload: self._route(str(query.key_expr), payload))
 
+    def _on_paint_query(self, query: zenoh.Query) -> None:
+        with query:
+            self._answer(query, lambda payload: self.paint())
+
+    def _on_commission_query(self, query: zenoh.Query) -> None:
+        with query:
+            self._answer(query, lambda payload: self.commission_paint(parse_payload(payload, CommissionPaintRequest)))
+
     def _answer(self, query: zenoh.Query, handle, reply_key: str | None = None) -> None:
         key = str(query.key_expr)
         try:
@@ -317,6 +328,51 @@ class CellService:
                           accepting_jobs=accepting, queue_length=queue_length, queue_max=self.scfg.queue_max,
                           running_job=running.job_id if running else None, jobs_total=self.store.count(),
                           started_at=self.started_at, uptime_s=round(time.monotonic() - self._t0, 3))
+
+    def paint(self) -> PaintReply:
+        from cellctl.config import cell_planners_config
+
+        p = cell_planners_config(self.cfg, self.cfg_path).paint
+        return PaintReply(cell_id=self.cfg.cell_id, paint=PaintModel(name=p.name, lab_mean=list(p.lab_mean),
+                                                                     source=p.source),
+                          paint_file=str(self.cfg_path.parent / self.cfg.paint_file) if self.cfg.paint_file else None)
+
+    def commission_paint(self, req: CommissionPaintRequest) -> CommissionPaintReply:
+        """One picture of a sample, on the devices no job holds (the camera is the job's while it runs); every
+        job queued after it finds the line by the new paint."""
+        import base64
+
+        from cellctl.scan.paint_sample import commission_and_write, picture, png_bytes
+        from drivers.interfaces import DeviceError
+
+        with self._cv:
+            busy = self._running is not None or bool(self._queue)
+        if busy or not self.devices.held.acquire(blocking=False):
+            raise ApiError("cell_busy", "a job is running or queued, or the devices are being checked: commission "
+                                        "the paint when the cell is idle")
+        try:
+            sample = {"finish": req.twin_finish, "paint": req.twin_paint, "light": req.twin_light,
+                      "no_paint": req.twin_no_paint}
+            try:
+                run, out, done = commission_and_write(self.cfg, self.cfg_path, req.name, twin_sample=sample)
+            except ValueError as e:
+                raise ApiError("invalid_request", str(e)) from None
+            except DeviceError as e:
+                return CommissionPaintReply(ok=False, reason=f"no picture: {e}"[:1000])
+        finally:
+            self.devices.held.release()
+        cal = run.calibration
+        pic = base64.b64encode(png_bytes(picture(run)[::2, ::2])).decode()
+        reply = CommissionPaintReply(ok=cal.ok, reason=cal.reason, delta_e=cal.delta_e, metal_lab=cal.metal_lab[:10],
+                                     picture_png_base64=pic if len(pic) <= 700_000 else None)
+        if cal.ok:
+            self.cfg = self.cfg.model_copy(update={"paint_file": str(out.resolve())})  # the next job reads it
+            reply.paint = PaintModel(name=cal.paint.name, lab_mean=list(cal.paint.lab_mean), source=cal.paint.source)
+            log.info("paint %s commissioned by %s: %s (%s)", req.name, req.requested_by or "?", out,
+                     done.get("config", ""))
+        else:
+            log.info("paint %s refused: %s", req.name, cal.reason)
+        return reply
 
     def submit(self, req: ScanDrawingRequest) -> SubmitReply:
         with self._cv:  # the key's lookup and the job's creation under one lock: one key, one job

@@ -12,7 +12,8 @@ from pathlib import Path
 from fastapi.responses import RedirectResponse
 from nicegui import app, run, ui
 
-from cellctl.service.api import PLANNER_NAMES, TERMINAL_STATES, JobRecord, ScanDrawingRequest
+from cellctl.service.api import (PLANNER_NAMES, TERMINAL_STATES, CommissionPaintRequest, JobRecord,
+                                 ScanDrawingRequest)
 from cellctl.service.client import CellError, CellUnreachable, NoReply
 from cellctl.tablet import geometry, words
 from cellctl.tablet.accounts import AccountBook
@@ -200,7 +201,7 @@ def register(cfg: TabletConfig, yard: Yard, accounts: AccountBook) -> None:
             scenes = c.status.scenes if twin else []
             with ui.card().classes("q-ma-md q-pa-lg w-[40rem] max-w-full"):
                 ui.label("Scan drawing").classes("text-2xl font-bold")
-                ui.label("The arm explores the piece, finds the red line and plans the cut.").classes("text-lg")
+                ui.label("The arm explores the piece, finds the painted line and plans the cut.").classes("text-lg")
                 planner = ui.select(list(PLANNER_NAMES), value=DEFAULT_PLANNER, label="Planner") \
                     .classes("w-full text-xl").props("data-testid=planner")
                 scene = None
@@ -286,11 +287,88 @@ def register(cfg: TabletConfig, yard: Yard, accounts: AccountBook) -> None:
                 shown[0] = total
                 await load_jobs()
 
+        def paint_card():
+            """The paint the cell looks for, and (operators) commissioning a new one from a sample in front of
+            the camera. Built once: a form redrawn under a finger loses the tap."""
+            c = yard.cell(cell_id)
+            twin = bool(c and c.status and c.status.twin)
+            with ui.card().classes("q-ma-md q-pa-lg w-[40rem] max-w-full").props("data-testid=paint-card"):
+                ui.label("The yard's paint").classes("text-2xl font-bold")
+                now = ui.label("Reading the cell's paint...").classes("text-xl").props("data-testid=paint-now")
+
+                async def load():
+                    try:
+                        r = await run.io_bound(lambda: yard.client(cell_id).paint())
+                        now.text = f"This cell finds lines of {r.paint.name} paint ({r.paint.source})."
+                    except NET_ERRORS as e:
+                        now.text = f"Cannot read the cell's paint: {_say(e)}"
+
+                ui.timer(0.1, load, once=True)
+                if not _may_command():
+                    return
+                ui.label("To change it: spray a patch of the new paint on a piece of the yard's scrap, hold it "
+                         "0.3-0.5 m in front of the camera, the paint in the middle of the picture and bare metal "
+                         "all round it.").classes("text-lg")
+                name = ui.input("Paint name (e.g. pink)").classes("w-full text-xl").props("data-testid=paint-name")
+                sample = {}
+                if twin:
+                    with ui.row().classes("w-full gap-4"):
+                        sample["twin_finish"] = ui.input("Sample metal (twin)", value="rust_red") \
+                            .props("data-testid=paint-finish")
+                        sample["twin_paint"] = ui.input("Sample paint (twin, default the name)") \
+                            .props("data-testid=paint-colour")
+                        sample["twin_light"] = ui.input("Light (twin)", value="normal")
+                told = ui.column().classes("w-full").props("data-testid=paint-result")
+
+                async def commission():
+                    if not _may_command():
+                        ui.notify("Only an operator can commission the paint.", type="negative")
+                        return
+                    req = {"name": (name.value or "").strip(), "requested_by": _who()[0],
+                           **{k: (v.value or "").strip() or None for k, v in sample.items()}}
+                    try:
+                        req = CommissionPaintRequest.model_validate(req)
+                    except ValueError:
+                        ui.notify("Give the paint a name: letters, digits, spaces or dashes.", type="negative")
+                        return
+                    button.disable()
+                    told.clear()
+                    with told:
+                        ui.label("Taking the picture...").classes("text-lg")
+                    try:
+                        reply = await run.io_bound(lambda: yard.client(cell_id).commission_paint(req))
+                    except NET_ERRORS as e:
+                        reply = None
+                        told.clear()
+                        with told:
+                            ui.label(f"Not commissioned: {_say(e)}").classes("text-lg text-red-9")
+                    button.enable()
+                    if reply is None:
+                        return
+                    told.clear()
+                    with told:
+                        if reply.ok:
+                            ui.label(f"Commissioned: the cell now finds lines of {reply.paint.name} paint "
+                                     f"(ΔE {reply.delta_e:.0f} from the metal).").classes("text-lg text-green-9") \
+                                .props("data-testid=paint-ok")
+                        else:
+                            ui.label(f"Refused, the paint is unchanged: {reply.reason}").classes(
+                                "text-lg text-red-9").props("data-testid=paint-refused")
+                        if reply.picture_png_base64:
+                            ui.image("data:image/png;base64," + reply.picture_png_base64).classes("w-[424px]") \
+                                .props("data-testid=paint-picture")
+                            ui.label("Cyan: what the cell takes as paint").classes("text-lg")
+                    await load()
+
+                button = ui.button("Commission paint", icon="palette", on_click=commission).classes(BIG) \
+                    .props("color=blue-9 data-testid=commission")
+
         c0 = yard.cell(cell_id)
         last[:] = [_card_key(c0) if c0 else None, (c0.status.twin, tuple(c0.status.scenes)) if c0 and c0.status
                    else None]
         state()
         start_form()
+        paint_card()
         history()
         ui.timer(cfg.refresh_s, refresh)
         ui.timer(5.0, load_jobs)  # states of listed jobs change without the total changing
