@@ -130,7 +130,7 @@ def test_the_shipped_router_config_caps_messages_sessions_and_commands():
     assert get("transport/link/rx/max_message_size") == MAX_MESSAGE_BYTES  # Zenoh's default: 1 GiB
     assert get("transport/unicast/max_sessions") == 64 and get("transport/unicast/max_links") == 1
     assert {r["key_expr"]: r["freq"] for d in get("downsampling") for r in d["rules"]} == \
-        {"cell/*/jobs/submit": 5.0, "cell/*/jobs/*/cancel": 5.0}
+        {"cell/*/jobs/submit": 5.0, "cell/*/jobs/*/cancel": 5.0, "cell/*/paint/commission": 1.0}
     assert all(d["flows"] == ["ingress"] and d["messages"] == ["query"] for d in get("downsampling"))
     acl = get("access_control")
     assert acl["enabled"] is True and acl["default_permission"] == "deny"

@@ -270,7 +270,12 @@ class CellService:
 
     def _on_commission_query(self, query: zenoh.Query) -> None:
         with query:
-            self._answer(query, lambda payload: self.commission_paint(parse_payload(payload, CommissionPaintRequest)))
+            self._answer(query, lambda payload: self._commission(str(query.key_expr), payload))
+
+    def _commission(self, key: str, payload: bytes | None) -> CommissionPaintReply:
+        if key != self.keys.paint_commission:  # a command answers its own key only, never a wildcard's query
+            raise ApiError("invalid_request", f"{key}: wildcards are not served; query {self.keys.paint_commission}")
+        return self.commission_paint(parse_payload(payload, CommissionPaintRequest))
 
     def _answer(self, query: zenoh.Query, handle, reply_key: str | None = None) -> None:
         key = str(query.key_expr)
