@@ -200,3 +200,17 @@ def test_the_paint_is_commissioned_through_the_job_api_and_the_next_job_uses_it(
             assert rec.result.paint.ok
     finally:
         svc.stop()
+
+
+@pytest.mark.parametrize("ref, paint", [("t_piece@rust_patchy,yellow,dim,67", "yellow"),
+                                        ("i_beam@rust_red,white,shadow,80", "white")])
+def test_paint_on_faces_turned_from_the_lamp_never_takes_the_metal(tmp_path, ref, paint):
+    """Found by `cellctl bench --appearance` (c78d5a3): yellow in dim light shaded twice over matched dark rust
+    (17 % of the T-piece's paint cloud, a cut 146 mm off the line), white with a fitted spread that held
+    the shading matched rust in a shadow (43 % of the I-beam's). Each view's paint stays on the line."""
+    cell = _cell(tmp_path)
+    assert main(["calibrate", "paint", "--config", str(cell), "--name", paint, "--finish", "rust_patchy"]) == 0
+    cfg, _ = load_cell_config(cell)
+    res, run_dir = run_job(JobSpec(cfg, cell, ref, "gnbv", seed=0, out=str(tmp_path), max_steps=5, cut=False))
+    assert res.paint.ok
+    assert paint_from_metal(run_dir, load_scene(ref)) <= 0.02
