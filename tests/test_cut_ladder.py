@@ -661,3 +661,16 @@ def test_a_collision_gap_says_what_blocks_the_torch(kin):
     assert len(gaps) == 1 and gaps[0].reason == COLLISION, gaps
     assert "the arm against the test slab" in gaps[0].detail and asked and max(asked) <= 8, gaps[0].detail
     assert 0.05 <= gaps[0].length_m <= 0.07 and len(path.branches) == 2
+
+
+def test_centring_on_paint_none_of_which_is_on_the_face_leaves_the_line():
+    """Found by `cellctl bench --appearance` (white on mill scale, an I-beam): paint beside the line but all of
+    it off the surface's plane by more than a third of its half width (depth noise on a thin band) left no
+    paint to centre on, and numpy's bincount of nothing is int64: the cut planning crashed."""
+    x = np.linspace(0, 0.2, 41)
+    line = np.column_stack([x, np.zeros_like(x), np.zeros_like(x)])
+    rng = np.random.default_rng(0)
+    px = rng.uniform(0, 0.2, 2000)
+    paint = np.column_stack([px, rng.uniform(-0.002, 0.002, 2000), np.full_like(px, 0.002)])
+    out = center_on_paint(line, paint, 0.005, normals=np.tile([0, 0, 1.0], (len(line), 1)))
+    assert np.allclose(out, line)

@@ -189,6 +189,7 @@ def center_on_paint(points: np.ndarray, paint: np.ndarray, spacing_m: float, clo
         across = np.where(good[:, None], np.einsum("kj,kj->k", across, side)[:, None] * side, across)
     count = np.bincount(i[inside], minlength=len(p))
     shift = np.stack([np.bincount(i[inside], across[inside, k], minlength=len(p)) for k in range(3)], axis=1)
+    shift = shift.astype(np.float64)  # bincount of no points, weights or not, is int64
     shift /= np.maximum(count, 1)[:, None]
     k = max(1, int(round(half / spacing_m)))
     a, b = np.clip(np.arange(len(p)) - k, 0, len(p) - 1), np.clip(np.arange(len(p)) + k, 0, len(p) - 1)
