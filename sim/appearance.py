@@ -221,10 +221,16 @@ class Painter:
     width_m: float
     object_rgb: RGB  # the flat colours pybullet drew, to read the shading back out
     paint_flat_rgb: RGB
+    paint_mesh: object = None  # trimesh.Trimesh of the painted faces: overspray lands only on faces turned as they are
 
     def __post_init__(self) -> None:
         dense = [_resample(np.asarray(l, dtype=np.float64), 0.001) for l in self.lines if len(l) >= 2]
         self._tree = cKDTree(np.vstack(dense)) if dense else None
+        self._line_normals = None  # per dense line point: the painted face's normal there (the spray's side)
+        m = self.paint_mesh
+        if dense and m is not None and len(getattr(m, "faces", ())):
+            _, face = cKDTree(m.triangles_center).query(np.vstack(dense), workers=-1)
+            self._line_normals = np.asarray(m.face_normals)[face]
         rng = np.random.default_rng(self.appearance.seed + 11)
         pts = np.vstack(dense) if dense else np.zeros((1, 3))
         d = rng.normal(size=3)
@@ -252,7 +258,7 @@ class Painter:
             flat = np.where(on_paint[idx, None], np.asarray(self.paint_flat_rgb), np.asarray(self.object_rgb))
             shading = rgb[idx].max(axis=1) / np.maximum(flat.max(axis=1), 1e-3)  # what pybullet's light gave
             albedo = metal_albedo(P, a.metal, a.seed)
-            alpha = self._paint_alpha(P, on_paint[idx], rng)
+            alpha = self._paint_alpha(P, on_paint[idx], rng, depth, K, idx, T_base_cam)
             paint = np.asarray(a.paint_rgb) * (1.0 + 0.03 * (2.0 * value_noise(P, 0.003, a.seed + 5) - 1.0))[:, None]
             albedo = (1.0 - alpha[:, None]) * albedo + alpha[:, None] * np.clip(paint, 0, 1)
             lit = albedo * shading[:, None]
@@ -273,9 +279,11 @@ class Painter:
         out += rng.standard_normal(size=out.shape, dtype=np.float32) * np.float32(1.5 / 255.0)  # the sensor's colour noise
         return (np.clip(out, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8).reshape(H, W, 3)
 
-    def _paint_alpha(self, P: np.ndarray, on_paint: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    def _paint_alpha(self, P: np.ndarray, on_paint: np.ndarray, rng: np.random.Generator, depth=None, K=None,
+                     idx=None, T_base_cam=None) -> np.ndarray:
         """How much paint covers each point: full in the stroke's core, fading at its edge, speckles of
-        overspray beyond it."""
+        overspray beyond it, on faces turned the way the painted face is (no spray through a plate onto
+        its back, nor onto a face turned from the can)."""
         alpha = on_paint.astype(np.float64)
         if self._tree is None:
             return alpha
@@ -285,6 +293,13 @@ class Painter:
         edge = on_paint & (d > 0.7 * hw)
         alpha[edge] = 1.0 - 0.4 * np.clip((d[edge] - 0.7 * hw) / (0.3 * hw), 0.0, 1.0)  # faded edge
         near = ~on_paint & (d < 1.6 * hw)
+        if near.any() and self._line_normals is not None and depth is not None:
+            k = np.flatnonzero(near)
+            _, j = self._tree.query(P[k], workers=-1)
+            n = _normals(depth, K, idx[k]) @ np.asarray(T_base_cam)[:3, :3].T
+            n *= np.sign(np.einsum("ij,ij->i", n, np.asarray(T_base_cam)[:3, 3] - P[k]))[:, None]  # a seen face faces the camera
+            facing = np.einsum("ij,ij->i", n, self._line_normals[j]) > 0.7
+            near[k[~facing]] = False
         if near.any():
             speck = value_noise(P[near], 0.0015, self.appearance.seed + 9)
             keep = speck > 0.55 + 0.4 * np.clip((d[near] - hw) / (0.6 * hw), 0.0, 1.0)  # sparser farther out

@@ -546,7 +546,7 @@ class Twin:
         self.camera = TwinCamera(sim, self.arm, self.config)
         if self.scene.appearance is not None:
             self.camera.painter = Painter(self.scene.appearance, self.scene.drawing_polylines, self.scene.drawing_width,
-                                          self.scene.object_rgb, self.scene.paint_rgb)
+                                          self.scene.object_rgb, self.scene.paint_rgb, self.scene.paint_mesh)
             self.camera.painter_ids = {"object": self.object_id, "paint": self.paint_id}
         faults = self.config.faults
         if faults.arm.active:
