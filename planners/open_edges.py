@@ -40,6 +40,9 @@ JOINT_POINTS = 2000
 #: (normals within about 25 deg of their mean); a rod's front, its normals spread round its
 #: curve, has no one face to look round from
 ONE_FACE = 0.9
+#: how high above an open point measured surface is looked for that stands over its border (a
+#: wall the paint runs up, a flange overhead): within the reach of a view's standoff
+WALL_PROBE_M = 0.15
 
 
 @dataclass
@@ -52,6 +55,14 @@ class OpenEdges:
     normals: np.ndarray  # (M,3)
     outward: np.ndarray  # (M,3), unit, orthogonal to the normal
     index: np.ndarray  # (M,) rows of the drawing
+    wall: np.ndarray | None = None  # (M,) m: height of measured wall over the border (wall_heights), 0 at a rim
+
+    def __post_init__(self):
+        if self.wall is None:
+            self.wall = np.zeros(len(self.xyz))
+
+    def rows(self, keep: np.ndarray) -> "OpenEdges":
+        return OpenEdges(self.xyz[keep], self.normals[keep], self.outward[keep], self.index[keep], self.wall[keep])
 
 
 def open_paint_edges(drawing: np.ndarray, drawing_origin: np.ndarray, surface: np.ndarray,
@@ -83,7 +94,37 @@ def open_paint_edges(drawing: np.ndarray, drawing_origin: np.ndarray, surface: n
     if not edge.any():
         return empty
     out = -c_t[edge] / shift[edge, None]
-    return OpenEdges(P[edge], n[edge], out, np.flatnonzero(edge))
+    wall = wall_heights(P[edge], n[edge], out, surface, radius_m)
+    out[wall > 0] *= -1.0
+    return OpenEdges(P[edge], n[edge], out, np.flatnonzero(edge), wall)
+
+
+def wall_heights(P: np.ndarray, n: np.ndarray, out: np.ndarray, surface: np.ndarray, radius_m: float) -> np.ndarray:
+    """(M,) m: how high measured surface stands over each open point's border (the highest probe,
+    up to ``WALL_PROBE_M`` along the point's normal, at the border or just past it, with surface
+    within ``radius_m``); 0 where none does (a rim). Where it does, the
+    surface does not turn away past the border as at a rim: a wall rises (an angle's other leg, a
+    web, a pipe standing on a plate) or a flange overhangs it, and the unseen surface is the wall's
+    face turned back toward the paint, or the shadow under the overhang. It is seen from the
+    paint's own side, so for these points the way round the border is reversed: a view from past
+    the border sees the wall's back (on thin stock, through one grid cell, the paint counts as
+    seen from there and the line is lost). The height says how much unseen face may carry the
+    paint on: a whole wall, not a rim's one-cell flank (``EdgeViews._gain``)."""
+    S = np.asarray(surface, dtype=np.float64).reshape(-1, 3)
+    if len(P) == 0 or len(S) == 0:
+        return np.zeros(len(P))
+    lo, hi = P.min(axis=0) - WALL_PROBE_M, P.max(axis=0) + WALL_PROBE_M
+    S = S[np.all((S >= lo) & (S <= hi), axis=1)]
+    if len(S) == 0:
+        return np.zeros(len(P))
+    step = 2.0 * radius_m
+    heights = np.arange(2.0 * radius_m, WALL_PROBE_M + 1e-9, step)  # clear of the paint's own face
+    ahead = np.array([0.0, 2.0 * radius_m])  # at the border, and just past it
+    probes = (P[:, None, None, :] + heights[None, :, None, None] * n[:, None, None, :]
+              + ahead[None, None, :, None] * out[:, None, None, :])  # (M, H, A, 3)
+    d, _ = cKDTree(S).query(probes.reshape(-1, 3), k=1, distance_upper_bound=radius_m, workers=-1)
+    hit = np.isfinite(d).reshape(len(P), len(heights), len(ahead)).any(axis=2)  # (M, H)
+    return np.where(hit, heights[None, :], 0.0).max(axis=1)
 
 
 def round_edge_axis(drawing: np.ndarray, drawing_origin: np.ndarray, surface: np.ndarray, target: np.ndarray,
@@ -211,7 +252,7 @@ class EdgeViews:
             if len(eyes) == 0:
                 continue
             rows = groups[i]
-            own = OpenEdges(edges.xyz[rows], edges.normals[rows], edges.outward[rows], edges.index[rows])
+            own = edges.rows(rows)
             gain = self._gain(state, eyes, R, own, state.drawing.origin[own.index].astype(np.float64), occupied)
             if gain.max() <= 0:
                 continue
@@ -228,7 +269,9 @@ class EdgeViews:
     def _gain(self, state: ScanState, eyes: np.ndarray, R: np.ndarray, pts: OpenEdges, origins: np.ndarray,
               occupied: nbv.OccupiedIndex, counted: bool = False):
         """(C,) summed ``round_the_edge`` over the open points each candidate frames and sees; with
-        ``counted`` also (C,) how many of them it sees at least ``EDGE_TURN`` further round."""
+        ``counted`` also (C,) how many of them it sees at least ``EDGE_TURN`` further round, each
+        counted as the cells of unseen face behind it: one for a rim's flank, a walled border's
+        wall height in cells (the paint may run on up the whole wall)."""
         grid = state.grid
         more = round_the_edge(eyes, pts, origins)  # (C, M)
         z, framed = in_image(eyes, R, pts.xyz, state.K, state.image_size)
@@ -236,7 +279,9 @@ class EdgeViews:
         seen = raycast.clear_sight(eyes, pts.xyz, framed & (more > 0), 1.5 * grid.voxel, grid.lo, grid.voxel,
                                    grid.shape, occupied.flat)  # short of the point's own cell
         gain = np.where(seen, more, 0.0).sum(axis=1)
-        return (gain, (seen & (more >= EDGE_TURN)).sum(axis=1)) if counted else gain
+        if not counted:
+            return gain
+        return gain, (seen & (more >= EDGE_TURN)) @ np.maximum(1.0, pts.wall / grid.voxel)
 
     def plan_joint(self, state: ScanState, occupied: nbv.OccupiedIndex | None = None, failed=None):
         """All the open paint at once: candidates round its centre, looking at it at both rolls,
@@ -255,7 +300,7 @@ class EdgeViews:
             return None
         if len(edges.xyz) > JOINT_POINTS:  # a fixed thinning: the score is a sum over borders
             keep = np.linspace(0, len(edges.xyz) - 1, JOINT_POINTS).astype(np.int64)
-            edges = OpenEdges(edges.xyz[keep], edges.normals[keep], edges.outward[keep], edges.index[keep])
+            edges = edges.rows(keep)
         occupied = occupied or nbv.OccupiedIndex(grid)
         c = edges.xyz.mean(axis=0)
         eyes = c + self._lattice

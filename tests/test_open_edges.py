@@ -239,3 +239,27 @@ def test_a_disc_is_centred_inside_a_surface_and_shifted_at_its_border():
     assert np.linalg.norm(d.shift[0]) < 0.02 * r  # grid rounding at the disc's rim
     assert d.shift[1][0] == pytest.approx(-4 * r / (3 * np.pi), rel=0.1) and abs(d.shift[1][2]) < 1e-9
     assert d.count[0] > 1.8 * d.count[1]
+
+
+def test_paint_running_into_a_wall_is_seen_from_its_own_side_and_counts_the_wall():
+    """An angle seen from above: a plate (z = 0, x <= 0.02) and an 8 mm wall standing at x = 0.02,
+    6 cm tall, whose face toward the paint was grazing (not measured: only its top and back).
+    A stripe painted along x up to the wall's foot. The paint at the foot is open, but the surface
+    does not turn away there as at a rim: the way round is reversed (back toward the paint's side,
+    from where the wall's face is seen), and the wall's height is what may carry the paint on.
+    The same stripe up to a plate's real rim (no wall) keeps its way out and no wall."""
+    x, y = np.meshgrid(np.arange(-0.05, 0.02 + 1e-9, STEP), np.arange(-0.05, 0.05 + 1e-9, STEP))
+    plate = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    yb, zb = np.meshgrid(np.arange(-0.05, 0.05 + 1e-9, STEP), np.arange(0.0, 0.06 + 1e-9, STEP))
+    back = np.column_stack([np.full(yb.size, 0.028), yb.ravel(), zb.ravel()])  # the wall's far face
+    top = np.column_stack([np.full(51, 0.024), np.arange(-0.05, 0.05 + 1e-9, STEP), np.full(51, 0.06)])
+    paint = plate[np.abs(plate[:, 1]) <= 0.01]
+    eye = np.tile([-0.1, 0.0, 0.4], (len(paint), 1))
+    walled = open_paint_edges(paint, eye, np.concatenate([plate, back, top]), 0.005)
+    foot = paint[walled.index, 0] > 0.02 - 0.0025
+    assert foot.sum() >= 5, "the paint at the wall's foot is open"
+    assert np.all(walled.outward[foot, 0] < -0.9), "seen from the paint's side, toward the wall"
+    assert np.all(walled.wall[foot] >= 0.05), "the wall stands 6 cm over the border"
+    rim = open_paint_edges(paint, eye, plate, 0.005)
+    at = paint[rim.index, 0] > 0.02 - 0.0025
+    assert at.sum() >= 5 and np.all(rim.outward[at, 0] > 0.9) and np.all(rim.wall == 0.0)
