@@ -281,7 +281,10 @@ def box_section(rng):
     mid = np.array([[-W / 2, t / 2], [W / 2, t / 2], [W / 2, H - t / 2], [-W / 2, H - t / 2]])
     left, right = _strip(mid, t, closed=True)
     mesh = _extrude_strip(left, right, L, closed=True)
-    o = np.array([[-W / 2, 0.0], [-W / 2, H], [W / 2, H], [W / 2, 0.0]])  # up one side, over, down the other
+    # up one side, over, down the other: on the outer faces (the walls' midlines lie t/2 inside them, as
+    # near the inner faces as the outer, and a line drawn there was painted inside the box, unseen)
+    w = W / 2 + t / 2
+    o = np.array([[-w, 0.0], [-w, H], [w, H], [w, 0.0]])
     return mesh, _prism_chart(o, L), {"width_m": W, "height_m": H, "thickness_m": t}, None
 
 
