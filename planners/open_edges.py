@@ -172,6 +172,35 @@ def edge_clusters(edges: OpenEdges, link_m: float, min_cells: int, voxel: float)
     return sorted(groups, key=len, reverse=True)
 
 
+@dataclass
+class UnseenPaint:
+    """A border where the paint the scan saw runs into surface it did not measure: the line may go on
+    there, unseen (or the paint runs off a real edge: from the cloud alone the two look alike)."""
+
+    centre: np.ndarray  # (3,) an open point of the border, nearest the group's centroid
+    border_m: float  # the border's length (its open points' extent along it)
+    wall_m: float  # the height of measured wall over it (``wall_heights``), 0 at a rim
+
+
+def unseen_paint(drawing: np.ndarray, drawing_origin: np.ndarray, surface: np.ndarray, radius_m: float,
+                 voxel_m: float, min_cells: int = 1) -> list[UnseenPaint]:
+    """The borders where the paint runs on past what was measured (``open_paint_edges`` grouped as
+    the edge views group them, ``edge_clusters``), longest first: what a scan left unresolved, so a
+    share of "the paint seen" is a share of less than all the paint."""
+    edges = open_paint_edges(drawing, drawing_origin, surface, radius_m)
+    out = []
+    for rows in edge_clusters(edges, 1.5 * voxel_m, min_cells, voxel_m):
+        if len(rows) < MIN_NEIGHBOURS:
+            continue
+        P = edges.xyz[rows]
+        c = P.mean(axis=0)
+        _, _, vt = np.linalg.svd(P - c, full_matrices=False)
+        along = (P - c) @ vt[0]
+        out.append(UnseenPaint(P[np.argmin(np.linalg.norm(P - c, axis=1))], float(np.ptp(along)),
+                               float(np.median(edges.wall[rows]))))
+    return sorted(out, key=lambda u: -u.border_m)
+
+
 def round_the_edge(eyes: np.ndarray, edges: OpenEdges, origins: np.ndarray) -> np.ndarray:
     """(C, M) radians: how much further round each open point's edge a camera at ``eyes`` (C,3)
     looks than the view that saw it (from ``origins`` (M,3)). In the plane of the point's normal

@@ -263,3 +263,23 @@ def test_paint_running_into_a_wall_is_seen_from_its_own_side_and_counts_the_wall
     rim = open_paint_edges(paint, eye, plate, 0.005)
     at = paint[rim.index, 0] > 0.02 - 0.0025
     assert at.sum() >= 5 and np.all(rim.outward[at, 0] > 0.9) and np.all(rim.wall == 0.0)
+
+
+def test_the_paint_left_running_on_unseen_is_told_with_its_border():
+    """What a scan leaves unresolved: a stripe 20 mm wide seen up to a line across it has one border
+    where it runs on unseen, about the stripe's width long; the same stripe ending on a plate seen
+    in full has none; running into a wall's foot, the border says how high the wall stands."""
+    from planners.open_edges import unseen_paint
+
+    x, y = np.meshgrid(np.arange(-0.05, 0.05 + 1e-9, STEP), np.arange(-0.05, 0.05 + 1e-9, STEP))
+    plate = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    paint = plate[(np.abs(plate[:, 1]) <= 0.01) & (np.abs(plate[:, 0]) <= 0.03 + 1e-9)]
+    eye = np.tile([0.0, 0.0, 0.4], (len(paint), 1))
+    assert unseen_paint(paint, eye, plate, 0.005, 0.01) == []
+    short, seen = plate[plate[:, 0] <= 0.02 + 1e-9], paint[paint[:, 0] <= 0.02 + 1e-9]
+    (u,) = unseen_paint(seen, eye[:len(seen)], short, 0.005, 0.01)
+    assert 0.014 <= u.border_m <= 0.024 and u.centre[0] > 0.015 and abs(u.centre[1]) < 0.006 and u.wall_m == 0.0
+    yb, zb = np.meshgrid(np.arange(-0.05, 0.05 + 1e-9, STEP), np.arange(0.0, 0.06 + 1e-9, STEP))
+    back = np.column_stack([np.full(yb.size, 0.028), yb.ravel(), zb.ravel()])
+    (w,) = unseen_paint(seen, eye[:len(seen)], np.concatenate([short, back]), 0.005, 0.01)
+    assert w.wall_m >= 0.05

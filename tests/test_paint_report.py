@@ -157,6 +157,14 @@ def test_the_operator_is_told_the_share_of_the_paint_not_the_line_s_own():
     # without a paint check (an old result) the line's own share is all there is
     bare = r.model_copy(update={"cut": cut.model_copy(update={"paint": None, "cut_fraction": 0.9})})
     assert bare.cut.told_share == 0.9 and cut_warning(bare).startswith("warning: 90.0 %")
+    # all the paint seen is cut, but it runs on past what the scan measured: the share is of less than the line
+    from cellctl.scan.result import UnseenPaintSummary
+    full = paint.model_copy(update={"cut_share": 1.0, "uncut": []})
+    done = r.model_copy(update={"cut": cut.model_copy(update={"paint": full})})
+    assert cut_warning(done) is None
+    under = full.model_copy(update={"unseen": [UnseenPaintSummary(centre=[0.5, 0.0, 0.2], border_m=0.02, wall_m=0.1)]})
+    told = cut_warning(r.model_copy(update={"cut": cut.model_copy(update={"paint": under})}))
+    assert told.startswith("warning: 100.0 %") and "runs on unseen at 1 border" in told
 
 
 def test_the_generated_report_gives_each_piece_s_spread_over_seeds():

@@ -44,6 +44,7 @@ def piece_rows(doc: dict) -> list[dict]:
             "standoff_ok": None if tip_lo is None else (abs(tip_lo - standoff_mm) <= STANDOFF_TOL_MM
                                                         and abs(tip_hi - standoff_mm) <= STANDOFF_TOL_MM),
             "self_error_points": None if true is None or p.get("cut_share") is None else 100 * (p["cut_share"] - true),
+            "unseen_borders": (c.get("unseen_paint") or {}).get("borders"),
             "cuts": c.get("cuts"), "fragments": sum(1 for x in lengths if x < FRAGMENT_M),
             "uncut_m_by_reason": c.get("uncut_m_by_reason") or {},
             "oracle_uncut_m_by_reason": o.get("uncut_m_by_reason") or {},
@@ -73,6 +74,12 @@ def overall(rows: list[dict]) -> dict:
         "standoff_ok": sum(1 for r in ok if r["standoff_ok"]),
         "self_within_3_points": sum(1 for x in errs if x <= 3.0), "self_measured": len(errs),
         "self_error_max_points": max(errs) if errs else None,
+        # the cell's own warning that the paint runs on unseen, beside where its share is off
+        "self_off": sum(1 for r in ok if r["self_error_points"] is not None and abs(r["self_error_points"]) > 3.0),
+        "self_off_flagged": sum(1 for r in ok if r["self_error_points"] is not None and abs(r["self_error_points"]) > 3.0
+                                and r["unseen_borders"]),
+        "self_near_flagged": sum(1 for r in ok if r["self_error_points"] is not None and abs(r["self_error_points"]) <= 3.0
+                                 and r["unseen_borders"]),
         "fragments": sum(r["fragments"] for r in ok), "pieces_with_fragments": sum(1 for r in ok if r["fragments"]),
         "planning_median_s": _pct([r["planning_s"] for r in ok], 50),
         "scan_percent_median": _pct([r["scan_percent"] for r in rows], 50),
@@ -120,6 +127,8 @@ def section(doc: dict) -> list[str]:
          f"| tip within standoff +- {STANDOFF_TOL_MM:g} mm of the true metal, lit | {o['standoff_ok']} of {o['measured']} |",
          f"| self-reported share within 3 points of the true | {o['self_within_3_points']} of {o['self_measured']} "
          f"(worst {_f(o['self_error_max_points'], 1)} points) |",
+         f"| of those off by more, the cell warned that the paint runs on unseen | {o['self_off_flagged']} of "
+         f"{o['self_off']} (and on {o['self_near_flagged']} within 3) |",
          f"| fragments (cuts under {1000 * FRAGMENT_M:.0f} mm) | {o['fragments']} on {o['pieces_with_fragments']} pieces |",
          f"| cut planning, median (s) | {_f(o['planning_median_s'], 2)} |",
          *([f"| true cut coverage's range over the seeds, per piece: max (points) | {_f(max(spread.values()), 1)} "
@@ -127,8 +136,8 @@ def section(doc: dict) -> list[str]:
          f"| scan coverage, median (%) | {_f(o['scan_percent_median'], 1)} |", "",
          "| piece | family | lines | scan (%) | self-reported (%) | own line (%) | true (%) | oracle (%) | true/oracle | "
          "flame to line max (mm) | at poses (mm) | tip off metal (mm) | cuts | fragments | uncut by reason (mm) | "
-         "oracle uncut (mm) | cut planning (s) |",
-         "|---|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|---|---|--:|"]
+         "oracle uncut (mm) | paint runs on unseen (borders) | cut planning (s) |",
+         "|---|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|---|---|--:|--:|"]
     for r in rows:
         lines = r["lines"]
         lines = ", ".join(lines) if isinstance(lines, (list, tuple)) else (lines or "–")
@@ -139,6 +148,6 @@ def section(doc: dict) -> list[str]:
                  f"{_f(r['oracle_coverage'], 1, 100)} | {_f(r['ratio'], 2)} | {_f(r['flame_to_line_max_mm'])} | "
                  f"{_f(r['pose_to_line_max_mm'])} | {tip} | {r['cuts'] if r['cuts'] is not None else '–'} | "
                  f"{r['fragments']} | {_reasons(r['uncut_m_by_reason'])} | {_reasons(r['oracle_uncut_m_by_reason'])} | "
-                 f"{_f(r['planning_s'], 2)}{err} |")
+                 f"{'–' if r['unseen_borders'] is None else r['unseen_borders']} | {_f(r['planning_s'], 2)}{err} |")
     L.append("")
     return L

@@ -109,8 +109,10 @@ def cut_record(cut: CutSummary | None) -> dict | None:
     dry = cut.dry_run
     paint = cut.paint
     return {"fraction": cut.cut_fraction, "cuts": cut.feasible_branches, "cut_lengths_m": list(cut.cut_lengths_m),
-            "paint": paint and paint.model_dump(exclude={"uncut"}),
+            "paint": paint and paint.model_dump(exclude={"uncut", "unseen"}),
             "uncut_paint_m_by_reason": _uncut_paint(paint),
+            "unseen_paint": paint and {"borders": len(paint.unseen),
+                                       "border_m": round(sum(u.border_m for u in paint.unseen), 4)},
             "planning_s": round(cut.planning_s, 3), "uncut_m_by_reason": gaps,
             "accuracy": cut.accuracy and cut.accuracy.model_dump(), "error": cut.error,
             "clearing_views": cut.clearing_views,

@@ -7,7 +7,7 @@ import time
 import numpy as np
 from scipy.spatial import cKDTree
 
-from cellctl.scan.result import CutSummary, DryRun, GapRecord, PaintCheck, UncutPaintSummary
+from cellctl.scan.result import CutSummary, DryRun, GapRecord, PaintCheck, UncutPaintSummary, UnseenPaintSummary
 from drivers.interfaces import Arm, ArmAbilities, JointTrajectory
 from planners.clouds import Cloud
 from planners.config import CutPathConfig
@@ -16,6 +16,7 @@ from planners.cutpath.paint_report import cut_against_paint, flame_path
 from planners.grid import OccupancyGrid
 from planners.motion.collision import CollisionChecker, CollisionConfig, RobotCollisionModel, TorchShape
 from planners.motion.kinematics import Kinematics
+from planners.open_edges import unseen_paint
 from sim.config import TwinToolConfig
 
 
@@ -64,7 +65,8 @@ def what_blocks(checker: CollisionChecker, piece: str = "the piece"):
 
 def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: OccupancyGrid, drawing: Cloud,
              surface: Cloud, viewpoint: np.ndarray,
-             park_q: np.ndarray | None = None, cloud_voxel_m: float = 0.002) -> tuple[CutPath | None, CutSummary, Kinematics]:
+             park_q: np.ndarray | None = None, cloud_voxel_m: float = 0.002,
+             open_edge_radius_m: float = 0.005) -> tuple[CutPath | None, CutSummary, Kinematics]:
     """Cut path from the scan, checked against the paint it saw (``check_against_paint``; the clouds are
     deduplicated at ``cloud_voxel_m``); a drawing that gives no path is reported, not raised."""
     m = arm.model
@@ -99,7 +101,28 @@ def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: Occupanc
         summary.warnings.append("nothing on the drawing can be cut: " + (
             "; ".join(sorted({f"{g.reason}: {g.detail}" for g in summary.gaps})) or "no drawing branch"))
     check_against_paint(summary, path, kin, cut, drawing, surface, viewpoint, cloud_voxel_m)
+    note_unseen_paint(summary, drawing, surface, open_edge_radius_m, grid.voxel)
     return path, summary, kin
+
+
+def note_unseen_paint(summary: CutSummary, drawing: Cloud, surface: Cloud, radius_m: float, voxel_m: float) -> None:
+    """``summary.paint.unseen``: where the paint the scan saw runs into surface it never measured
+    (planners.open_edges.unseen_paint), and a warning: the share of the paint seen is then a share of
+    less than the whole line, and the cell cannot say how much less."""
+    if summary.paint is None or len(drawing) == 0 or len(surface) == 0:
+        return
+    found = unseen_paint(drawing.xyz, drawing.origin, surface.xyz, radius_m, voxel_m)
+    summary.paint.unseen = [UnseenPaintSummary(centre=[round(float(v), 4) for v in u.centre],
+                                               border_m=round(u.border_m, 4), wall_m=round(u.wall_m, 4))
+                            for u in found[:100]]
+    if found:
+        top = found[0]
+        summary.warnings.append(
+            f"the paint runs on past what the scan measured at {len(found)} border{'s' if len(found) > 1 else ''} "
+            f"({1e3 * sum(u.border_m for u in found):.0f} mm in all, the longest near "
+            f"{', '.join(f'{v:.3f}' for v in top.centre)} m{', at the foot of a wall' if top.wall_m > 0 else ''}): "
+            f"the line may go on there unseen, and the {100 * summary.paint.cut_share:.0f} % is of the paint seen; "
+            "look at the piece there")
 
 
 def check_against_paint(summary: CutSummary, path: CutPath, kin: Kinematics, cut: CutPathConfig, drawing: Cloud,

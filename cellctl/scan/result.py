@@ -83,6 +83,16 @@ class UncutPaintSummary(Summary):
     detail: str = Field("", max_length=500)
 
 
+class UnseenPaintSummary(Summary):
+    """A border where the paint the scan saw runs into surface it never measured: the line may go on
+    there, unseen (or runs off a real edge of the piece: from the scan alone the two look alike)."""
+
+    centre: list[float] = Field(min_length=3, max_length=3, description="a paint point on the border, robot base, m")
+    border_m: float = Field(ge=0, description="the border's length")
+    wall_m: float = Field(0.0, ge=0, description="height of the measured wall standing over it (the paint runs "
+                                                 "to the foot of a face the scan did not see), 0 at a rim")
+
+
 class PaintCheck(Summary):
     """The cut against what the cell saw (never against its own line): the painted area under the flame's
     path, computed at every sample of the planned motion with the flame lit."""
@@ -98,6 +108,9 @@ class PaintCheck(Summary):
     tip_to_surface_min_mm: float | None = Field(None, ge=0, description="the torch tip's clearance from the scanned "
                                                                         "surface while lit, least")
     tip_to_surface_max_mm: float | None = Field(None, ge=0)
+    unseen: list[UnseenPaintSummary] = Field(default_factory=list, max_length=100, description="where the paint "
+                                             "runs on past what the scan measured, longest first: there "
+                                             "``cut_share`` is a share of less than the whole line")
 
 
 class CutPathSummary(Summary):

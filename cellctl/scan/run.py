@@ -37,14 +37,16 @@ def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, arm: Arm, run_dir: Path, rec
     job.for_the_cut(result, "the move to park", lambda: job.go_park(result))  # the cut starts clear above the cell
     voxel = pcfg.grid.surface_voxel_m
     path, summary, kin = plan_cut(arm, cfg.motion.collision, pcfg.cutpath, job.grid, job.drawing, job.surface,
-                                  viewpoint, park_q=job.motion.park_q, cloud_voxel_m=voxel)
+                                  viewpoint, park_q=job.motion.park_q, cloud_voxel_m=voxel,
+                                  open_edge_radius_m=pcfg.nbv.open_edge_radius_m)
     targets = clearing_targets(path, pcfg.cutpath.max_clearing_views)
     if targets and not job.cancelled():  # the torch's way is unseen: look, then plan again
         views = job.for_the_cut(result, "the views of the torch's way", lambda: job.look_along(targets, result)) or 0
         job.for_the_cut(result, "the move to park", lambda: job.go_park(result))
         if views:
             path, summary, kin = plan_cut(arm, cfg.motion.collision, pcfg.cutpath, job.grid, job.drawing,
-                                          job.surface, viewpoint, park_q=job.motion.park_q, cloud_voxel_m=voxel)
+                                          job.surface, viewpoint, park_q=job.motion.park_q, cloud_voxel_m=voxel,
+                                          open_edge_radius_m=pcfg.nbv.open_edge_radius_m)
         summary.clearing_views = views
     if path is not None:
         path.write(run_dir)

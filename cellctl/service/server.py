@@ -609,11 +609,14 @@ def cut_warning(summary: ResultSummary | None) -> str | None:
         uncut = {}
         for u in cut.paint.uncut:
             uncut[u.reason] = uncut.get(u.reason, 0.0) + u.length_m
-    if cut.told_share >= 0.999 and not uncut:
+    unseen = cut.paint.unseen if cut.paint is not None else []
+    if cut.told_share >= 0.999 and not uncut and not unseen:
         return None
     parts = ", ".join(f"{1000 * v:.0f} mm {k}" for k, v in sorted(uncut.items()))
     return (f"warning: {100 * cut.told_share:.1f} % of the drawing will be cut in {cut.feasible_branches} cuts"
-            + (f"; uncut: {parts}" if parts else ""))[:500]
+            + (f"; uncut: {parts}" if parts else "")
+            + (f"; the paint runs on unseen at {len(unseen)} border{'s' if len(unseen) > 1 else ''}: the share is "
+               "of the paint seen" if unseen else ""))[:500]
 
 
 def _detail(loc: str, msg: str):
