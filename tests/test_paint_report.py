@@ -138,6 +138,13 @@ def test_the_generated_report_sets_the_cell_beside_the_oracle_and_the_truth():
     assert o["self_within_3_points"] == 2 and o["pieces_with_fragments"] == 1
     md = "\n".join(section(_doc()))
     assert "| scrap:4:0 | plate | zigzag |" in md and "**error**: boom" in md
+    # a share off by more than 3 points, and whether the cell warned that its paint runs on unseen
+    doc = _doc()
+    doc["runs"][1]["cut"]["paint"]["cut_share"] = 0.95
+    doc["runs"][1]["cut"]["unseen_paint"] = {"borders": 2, "border_m": 0.04}
+    o = overall(piece_rows(doc))
+    assert o["self_off"] == 1 and o["self_off_flagged"] == 1 and o["self_near_flagged"] == 0
+    assert "| 1 of 1 (and on 0 within 3) |" in "\n".join(section(doc))
 
 
 def test_the_operator_is_told_the_share_of_the_paint_not_the_line_s_own():
