@@ -105,3 +105,12 @@ def test_band_width_tells_a_line_from_a_plate():
 def test_old_hsv_config_is_refused_with_the_way_out():
     with pytest.raises(ValueError, match="calibrate paint"):
         PlannersConfig.model_validate({"color": {"hue_center_deg": 0}})
+
+
+def test_paint_up_a_wall_s_inner_face_is_scanned_from_the_paint_s_side(tmp_path):
+    """scrap:0:76 kept as a scene file: an angle whose line runs along the flat leg and up the inner
+    face of the standing one, grazing to the first view. Its edge views looked round the wall's foot as
+    round a rim, from behind the wall, saw its back and stopped at 38.8 % of the paint; seen from the
+    paint's side the scan finds the paint up the wall."""
+    res, _ = _scan(str(DATA / "angle-wall-foot.yaml"), tmp_path, cut=False)
+    assert res.coverage_percent >= 90.0, (res.coverage_percent, res.terminated_by, len(res.viewpoints))

@@ -89,6 +89,28 @@ def test_a_flame_that_swings_off_the_line_is_measured_off_the_paint():
     assert rep.flame_off_paint_m == pytest.approx(2 * 0.03, abs=0.006)
 
 
+def test_a_flame_inside_the_paint_but_beside_its_centre_is_told_off_the_line():
+    """A cut 8 mm beside the centre of a 20 mm band: never off the paint (the band reaches 10 mm), but
+    off the line; the paint it passes is not counted cut. On the centre: within a cell of it."""
+    line = np.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]])
+    paint = _band(line)
+    on = _report(paint, [_flame(_line([0.0, 0.0, 0.0], [0.3, 0.0, 0.0]))])
+    assert on.flame_off_centre_max_mm <= 1e3 * VOXEL and on.flame_off_centre_m == 0.0 and on.cut_share >= 0.99
+    beside = _report(paint, [_flame(_line([0.0, 0.008, 0.0], [0.3, 0.008, 0.0]))])
+    assert beside.flame_off_paint_m == 0.0, "the flame never leaves the paint"
+    assert beside.flame_off_centre_max_mm == pytest.approx(8.0, abs=1.5)
+    assert beside.flame_off_centre_m >= 0.25 and beside.cut_share < 0.2
+    # half of it on the centre, half beside: half the paint is cut
+    half = _report(paint, [_flame(np.vstack([_line([0.0, 0.0, 0.0], [0.15, 0.0, 0.0]),
+                                             _line([0.15, 0.008, 0.0], [0.3, 0.008, 0.0])]))])
+    assert half.cut_share == pytest.approx(0.5, abs=0.08)
+    # a zigzag's sharp tip: the slab across the spot holds both arms, the centre is not measured there,
+    # and at the apex, where the band rounds off, a blip shorter than half its width is no stretch off the line
+    vee = np.array([[0.05, 0.026, 0.0], [0.2, 0.0, 0.0], [0.05, -0.026, 0.0]])
+    tip = _report(_band(vee), [_flame(np.vstack([_line(vee[0], vee[1]), _line(vee[1], vee[2])]))])
+    assert tip.flame_off_centre_m == 0.0 and tip.cut_share >= 0.95
+
+
 def test_no_paint_is_an_error():
     with pytest.raises(ValueError, match="no paint"):
         paint_report(np.zeros((0, 3)), np.zeros((0, 3)), VOXEL, HALF, 0.005, [])

@@ -45,6 +45,7 @@ def piece_rows(doc: dict) -> list[dict]:
                                                         and abs(tip_hi - standoff_mm) <= STANDOFF_TOL_MM),
             "self_error_points": None if true is None or p.get("cut_share") is None else 100 * (p["cut_share"] - true),
             "unseen_borders": (c.get("unseen_paint") or {}).get("borders"),
+            "off_centre_m": p.get("flame_off_centre_m"), "off_paint_m": p.get("flame_off_paint_m"),
             "cuts": c.get("cuts"), "fragments": sum(1 for x in lengths if x < FRAGMENT_M),
             "uncut_m_by_reason": c.get("uncut_m_by_reason") or {},
             "oracle_uncut_m_by_reason": o.get("uncut_m_by_reason") or {},
@@ -78,6 +79,12 @@ def overall(rows: list[dict]) -> dict:
         "self_off": sum(1 for r in ok if r["self_error_points"] is not None and abs(r["self_error_points"]) > 3.0),
         "self_off_flagged": sum(1 for r in ok if r["self_error_points"] is not None and abs(r["self_error_points"]) > 3.0
                                 and r["unseen_borders"]),
+        # the cell's own warning that the flame leaves the paint or its centre, beside where it leaves the true line
+        "flame_warned": sum(1 for r in ok if r["flame_to_line_max_mm"] is not None and r["flame_to_line_max_mm"] > ON_LINE_MM
+                            and ((r["off_centre_m"] or 0) > 0 or (r["off_paint_m"] or 0) > 0)),
+        "flame_near_warned": sum(1 for r in ok if r["flame_to_line_max_mm"] is not None
+                                 and r["flame_to_line_max_mm"] <= ON_LINE_MM
+                                 and ((r["off_centre_m"] or 0) > 0 or (r["off_paint_m"] or 0) > 0)),
         "self_near_flagged": sum(1 for r in ok if r["self_error_points"] is not None and abs(r["self_error_points"]) <= 3.0
                                  and r["unseen_borders"]),
         "fragments": sum(r["fragments"] for r in ok), "pieces_with_fragments": sum(1 for r in ok if r["fragments"]),
@@ -124,6 +131,8 @@ def section(doc: dict) -> list[str]:
          f"| true / oracle, 5th percentile | {_f(o['ratio_p5'], 3)} |",
          f"| flame within {ON_LINE_MM:g} mm of the true line over the whole lit motion | {o['flame_within_5mm']} of "
          f"{o['flame_measured']} pieces (median of the max {_f(o['flame_max_median_mm'], 1)} mm) |",
+         f"| of the others, the cell warned that the flame leaves the paint or its centre | {o['flame_warned']} of "
+         f"{o['flame_measured'] - o['flame_within_5mm']} (and on {o['flame_near_warned']} within {ON_LINE_MM:g} mm) |",
          f"| tip within standoff +- {STANDOFF_TOL_MM:g} mm of the true metal, lit | {o['standoff_ok']} of {o['measured']} |",
          f"| self-reported share within 3 points of the true | {o['self_within_3_points']} of {o['self_measured']} "
          f"(worst {_f(o['self_error_max_points'], 1)} points) |",

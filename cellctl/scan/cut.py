@@ -138,6 +138,7 @@ def check_against_paint(summary: CutSummary, path: CutPath, kin: Kinematics, cut
         cut_share=round(min(max(rep.cut_share, 0.0), 1.0), 4), line_length_m=round(rep.line_length_m, 4),
         spray_width_mm=round(2e3 * rep.half_width_m, 1), uncut=[UncutPaintSummary(**u.to_json_dict()) for u in rep.uncut],
         flame_off_paint_max_mm=rep.flame_off_paint_max_mm, flame_off_paint_m=rep.flame_off_paint_m,
+        flame_off_centre_max_mm=rep.flame_off_centre_max_mm, flame_off_centre_m=rep.flame_off_centre_m,
         tip_to_surface_min_mm=rep.tip_to_surface_min_mm, tip_to_surface_max_mm=rep.tip_to_surface_max_mm)
     own, seen = summary.cut_fraction, summary.paint.cut_share
     if abs(own - seen) > cut.share_disagreement:
@@ -146,6 +147,10 @@ def check_against_paint(summary: CutSummary, path: CutPath, kin: Kinematics, cut
     if rep.flame_off_paint_m > 0:
         summary.warnings.append(f"the lit flame leaves the paint for {1e3 * rep.flame_off_paint_m:.0f} mm (up to "
                                 f"{rep.flame_off_paint_max_mm:.0f} mm off it): it would cut unmarked metal")
+    if rep.flame_off_centre_m > 0:
+        summary.warnings.append(f"the lit flame runs beside the paint's centre for {1e3 * rep.flame_off_centre_m:.0f} mm "
+                                f"(up to {rep.flame_off_centre_max_mm:.0f} mm off it, inside the paint): the cut "
+                                "there is off the line")
     missed = [u for u in rep.uncut if u.reason == "not followed"]
     if missed:
         summary.warnings.append(f"{1e3 * sum(u.length_m for u in missed):.0f} mm of paint lies off every cut's line "

@@ -105,6 +105,11 @@ class PaintCheck(Summary):
     flame_off_paint_max_mm: float | None = Field(None, ge=0, description="the flame spot's largest distance from "
                                                                          "any paint, over every lit sample")
     flame_off_paint_m: float = Field(0.0, ge=0, description="flame travel off the paint by more than the tolerance")
+    flame_off_centre_max_mm: float | None = Field(None, ge=0, description="the flame spot's largest distance from "
+                                                  "the paint band's centre across its travel, where both edges "
+                                                  "of the band are measured")
+    flame_off_centre_m: float = Field(0.0, ge=0, description="flame travel beside the band's centre by more than "
+                                                             "the tolerance: paint it passes there is not counted cut")
     tip_to_surface_min_mm: float | None = Field(None, ge=0, description="the torch tip's clearance from the scanned "
                                                                         "surface while lit, least")
     tip_to_surface_max_mm: float | None = Field(None, ge=0)

@@ -76,7 +76,8 @@ def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, arm: Arm, run_dir: Path, rec
             p = summary.paint
             print(f"  against the paint: the flame passes over {100 * p.cut_share:.1f} % of the paint (a "
                   f"{1000 * p.line_length_m:.0f} mm line {p.spray_width_mm:.0f} mm wide), at most "
-                  f"{p.flame_off_paint_max_mm} mm off it", file=sys.stderr, flush=True)
+                  f"{p.flame_off_paint_max_mm} mm off it, {p.flame_off_centre_max_mm} mm off its centre",
+                  file=sys.stderr, flush=True)
         if summary.accuracy:
             a = summary.accuracy
             print(f"  against the true line: {100 * a.cut_coverage:.1f} % within 5 mm of a cut; flame to line mean "

@@ -23,6 +23,11 @@ SPECK_HALF_WIDTHS_SQ = 2.0
 MEASURED_SHARE = 0.2
 #: the reason of uncut paint no gap of the plan explains: the cut's own line does not go there
 NOT_IN_CUT = "not followed"
+#: paint points at least this many in the slab across a flame spot for the band's two edges to count
+CENTRE_MIN_POINTS = 4
+#: a slab wider than this many spray widths crosses more than one band (a junction, a sharp tip's other
+#: leg, a crossing): the band's centre is not measured there
+CENTRE_MAX_WIDTHS = 1.5
 
 
 @dataclass
@@ -73,6 +78,8 @@ class PaintReport:
     uncut: list[UncutPaint] = field(default_factory=list)
     flame_off_paint_max_mm: float | None = None  # flame spot to the nearest paint, over every lit sample
     flame_off_paint_m: float = 0.0  # flame travel farther than the tolerance from any paint
+    flame_off_centre_max_mm: float | None = None  # flame spot to the paint band's centre across its travel
+    flame_off_centre_m: float = 0.0  # flame travel farther than the tolerance from the band's centre
     tip_to_surface_min_mm: float | None = None  # the tip's clearance from the measured surface, lit samples
     tip_to_surface_max_mm: float | None = None
     samples: int = 0
@@ -91,6 +98,66 @@ def _pieces(xyz: np.ndarray, link_m: float) -> tuple[int, np.ndarray]:
 
     g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(xyz), len(xyz)))
     return connected_components(g, directed=False)
+
+
+def off_centre(paint: np.ndarray, paint_normals: np.ndarray, spots: np.ndarray, half_width_m: float,
+               slab_m: float, tree: cKDTree | None = None) -> np.ndarray:
+    """(S,) m: how far each flame spot of one path lies from the centre of the paint band across its
+    travel, NaN where the band's two edges are not both measured there. The paint within two half
+    widths of the spot, in a slab ``slab_m`` thick along the travel and on the spot's face: its
+    extent across, from one edge of the band to the other; the centre is halfway. A flame inside the
+    band but beside its centre is near paint everywhere, so only this tells it leaves the line."""
+    spots = np.asarray(spots, dtype=np.float64).reshape(-1, 3)
+    off = np.full(len(spots), np.nan)
+    if len(spots) < 2 or len(paint) == 0:
+        return off
+    tree = tree or cKDTree(paint)
+    t = np.gradient(spots, axis=0)
+    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    n = np.asarray(paint_normals, dtype=np.float64)[tree.query(spots)[1]]
+    a = np.cross(t, n)
+    a /= np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
+    reach = 2.0 * half_width_m + 3.0 * slab_m
+    pairs = cKDTree(spots).sparse_distance_matrix(tree, reach, output_type="coo_matrix")
+    i, j = pairs.row, pairs.col
+    v = paint[j] - spots[i]
+    keep = (np.abs(np.einsum("kj,kj->k", v, t[i])) <= slab_m) & (np.abs(np.einsum("kj,kj->k", v, n[i])) <= slab_m)
+    i, x = i[keep], np.einsum("kj,kj->k", v[keep], a[i[keep]])
+    lo, hi = np.full(len(spots), np.inf), np.full(len(spots), -np.inf)
+    np.minimum.at(lo, i, x)
+    np.maximum.at(hi, i, x)
+    count = np.bincount(i, minlength=len(spots))
+    inner = reach - 2.0 * slab_m  # an edge found at the search's rim may lie beyond it
+    ok = ((count >= CENTRE_MIN_POINTS) & (hi - lo <= CENTRE_MAX_WIDTHS * 2.0 * half_width_m)
+          & (lo > -inner) & (hi < inner))
+    off[ok] = np.abs(0.5 * (lo[ok] + hi[ok]))
+    return off
+
+
+def beside_centre(f: FlamePath, c: np.ndarray, tolerance_m: float, min_run_m: float) -> np.ndarray:
+    """(S,) bool: the samples of a flame path beside the band's centre (``off_centre`` above
+    ``tolerance_m``) in runs at least ``min_run_m`` of travel long; a shorter blip (a sharp tip's
+    apex, where the band rounds off, or noise at its edge) is no stretch of cut off the line."""
+    off = c > tolerance_m
+    if not off.any():
+        return off
+    step = np.concatenate([[0.0], np.linalg.norm(np.diff(f.spots, axis=0), axis=1)])
+    cuts = np.flatnonzero(np.diff(off.astype(np.int8))) + 1
+    for rows in np.split(np.arange(len(off)), cuts):
+        if off[rows[0]] and step[rows[1:]].sum() < min_run_m:
+            off[rows] = False
+    return off
+
+
+def _centred(flames: list[FlamePath], beside: list[np.ndarray]) -> list[FlamePath]:
+    """The stretches of each flame path not ``beside`` the band's centre, as paths of their own."""
+    out = []
+    for f, b in zip(flames, beside):
+        cuts = np.flatnonzero(np.diff(b.astype(np.int8))) + 1
+        for rows in np.split(np.arange(len(b)), cuts):
+            if len(rows) and not b[rows[0]]:
+                out.append(FlamePath(f.tips[rows], f.axes[rows], f.spots[rows]))
+    return out
 
 
 def _under(paint: np.ndarray, flames: list[FlamePath], half_width_m: float, tolerance_m: float,
@@ -138,15 +205,24 @@ def paint_report(paint: np.ndarray, paint_normals: np.ndarray, voxel_m: float, h
     spots = np.vstack([f.spots for f in flames]) if flames else np.zeros((0, 3))
     if len(spots):
         rep.samples = len(spots)
-        covered = _under(paint, flames, half_width_m, tolerance_m, voxel_m)
+        paint_tree = cKDTree(paint)
+        centre = [off_centre(paint, paint_normals, f.spots, half_width_m, voxel_m, paint_tree) for f in flames]
+        beside = [beside_centre(f, c, tolerance_m, half_width_m) for f, c in zip(flames, centre)]
+        # paint is cut where the flame passes it on the band's centre, not beside it
+        covered = _under(paint, _centred(flames, beside), half_width_m, tolerance_m, voxel_m)
         specks = _specks(paint, ~covered, area, half_width_m, voxel_m)
         rep.cut_share = float(area[covered].sum() / max(total - area[specks].sum(), 1e-12))
-        paint_tree = cKDTree(paint)
         offs = [paint_tree.query(f.spots)[0] for f in flames]  # a few cuts
         off = np.concatenate(offs)
         rep.flame_off_paint_max_mm = round(1e3 * float(off.max()), 2)
         steps = [(np.linalg.norm(np.diff(f.spots, axis=0), axis=1), o[1:] > tolerance_m) for f, o in zip(flames, offs)]
         rep.flame_off_paint_m = round(sum(float(d[far].sum()) for d, far in steps), 4)
+        measured = np.concatenate(centre)
+        measured = measured[np.isfinite(measured)]
+        if len(measured):
+            rep.flame_off_centre_max_mm = round(1e3 * float(measured.max()), 2)
+        rep.flame_off_centre_m = round(sum(float(np.linalg.norm(np.diff(f.spots, axis=0), axis=1)[b[1:]].sum())
+                                           for f, b in zip(flames, beside)), 4)
         on_paint = sum(float(d[~far].sum()) for d, far in steps)
         if rep.cut_share >= MEASURED_SHARE and on_paint > 0:  # as measured where it is cut
             per_metre = float(area[covered].sum()) / on_paint
