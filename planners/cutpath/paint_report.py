@@ -108,10 +108,20 @@ def off_centre(paint: np.ndarray, paint_normals: np.ndarray, spots: np.ndarray, 
     extent across, from one edge of the band to the other; the centre is halfway. A flame inside the
     band but beside its centre is near paint everywhere, so only this tells it leaves the line."""
     spots = np.asarray(spots, dtype=np.float64).reshape(-1, 3)
-    off = np.full(len(spots), np.nan)
     if len(spots) < 2 or len(paint) == 0:
-        return off
-    tree = tree or cKDTree(paint)
+        return np.full(len(spots), np.nan)
+    # measured once per slab of travel (a motion's samples lie far closer, and a pivot stays on one spot)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(spots, axis=0), axis=1))])
+    _, first, per_sample = np.unique(np.floor(arc / slab_m).astype(np.int64), return_index=True, return_inverse=True)
+    if len(first) < 2:
+        return np.full(len(spots), np.nan)
+    return _off_centre_at(paint, paint_normals, spots[first], half_width_m, slab_m, tree or cKDTree(paint))[per_sample.ravel()]
+
+
+def _off_centre_at(paint: np.ndarray, paint_normals: np.ndarray, spots: np.ndarray, half_width_m: float,
+                   slab_m: float, tree: cKDTree) -> np.ndarray:
+    """``off_centre`` at spots ``slab_m`` or more apart along their travel."""
+    off = np.full(len(spots), np.nan)
     t = np.gradient(spots, axis=0)
     t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
     n = np.asarray(paint_normals, dtype=np.float64)[tree.query(spots)[1]]
