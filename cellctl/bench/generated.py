@@ -65,6 +65,15 @@ def overall(rows: list[dict]) -> dict:
     ratios = [r["ratio"] for r in ok if r["ratio"] is not None]
     flame = [r["flame_to_line_max_mm"] for r in ok if r["flame_to_line_max_mm"] is not None]
     errs = [abs(r["self_error_points"]) for r in ok if r["self_error_points"] is not None]
+
+    def share_off(r):  # None: not measured
+        return None if r["self_error_points"] is None else abs(r["self_error_points"]) > 3.0
+
+    def flame_off(r):
+        return None if r["flame_to_line_max_mm"] is None else r["flame_to_line_max_mm"] > ON_LINE_MM
+
+    def flame_warned(r):
+        return (r["off_centre_m"] or 0) > 0 or (r["off_paint_m"] or 0) > 0
     return {
         "pieces": len(rows), "measured": len(ok), "errors": sum(1 for r in rows if r["error"]),
         "true_coverage_median": _pct([r["true_coverage"] for r in ok], 50),
@@ -75,18 +84,13 @@ def overall(rows: list[dict]) -> dict:
         "standoff_ok": sum(1 for r in ok if r["standoff_ok"]),
         "self_within_3_points": sum(1 for x in errs if x <= 3.0), "self_measured": len(errs),
         "self_error_max_points": max(errs) if errs else None,
-        # the cell's own warning that the paint runs on unseen, beside where its share is off
-        "self_off": sum(1 for r in ok if r["self_error_points"] is not None and abs(r["self_error_points"]) > 3.0),
-        "self_off_flagged": sum(1 for r in ok if r["self_error_points"] is not None and abs(r["self_error_points"]) > 3.0
-                                and r["unseen_borders"]),
-        # the cell's own warning that the flame leaves the paint or its centre, beside where it leaves the true line
-        "flame_warned": sum(1 for r in ok if r["flame_to_line_max_mm"] is not None and r["flame_to_line_max_mm"] > ON_LINE_MM
-                            and ((r["off_centre_m"] or 0) > 0 or (r["off_paint_m"] or 0) > 0)),
-        "flame_near_warned": sum(1 for r in ok if r["flame_to_line_max_mm"] is not None
-                                 and r["flame_to_line_max_mm"] <= ON_LINE_MM
-                                 and ((r["off_centre_m"] or 0) > 0 or (r["off_paint_m"] or 0) > 0)),
-        "self_near_flagged": sum(1 for r in ok if r["self_error_points"] is not None and abs(r["self_error_points"]) <= 3.0
-                                 and r["unseen_borders"]),
+        # the cell's own warnings beside where its figures are off: the paint running on unseen beside its
+        # share, the flame leaving the paint or its centre beside the flame leaving the true line
+        "self_off": sum(1 for r in ok if share_off(r)),
+        "self_off_flagged": sum(1 for r in ok if share_off(r) and r["unseen_borders"]),
+        "self_near_flagged": sum(1 for r in ok if share_off(r) is False and r["unseen_borders"]),
+        "flame_warned": sum(1 for r in ok if flame_off(r) and flame_warned(r)),
+        "flame_near_warned": sum(1 for r in ok if flame_off(r) is False and flame_warned(r)),
         "fragments": sum(r["fragments"] for r in ok), "pieces_with_fragments": sum(1 for r in ok if r["fragments"]),
         "planning_median_s": _pct([r["planning_s"] for r in ok], 50),
         "scan_percent_median": _pct([r["scan_percent"] for r in rows], 50),

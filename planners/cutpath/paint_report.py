@@ -231,8 +231,7 @@ def paint_report(paint: np.ndarray, paint_normals: np.ndarray, voxel_m: float, h
         measured = measured[np.isfinite(measured)]
         if len(measured):
             rep.flame_off_centre_max_mm = round(1e3 * float(measured.max()), 2)
-        rep.flame_off_centre_m = round(sum(float(np.linalg.norm(np.diff(f.spots, axis=0), axis=1)[b[1:]].sum())
-                                           for f, b in zip(flames, beside)), 4)
+        rep.flame_off_centre_m = round(sum(float(d[b[1:]].sum()) for (d, _), b in zip(steps, beside)), 4)
         on_paint = sum(float(d[~far].sum()) for d, far in steps)
         if rep.cut_share >= MEASURED_SHARE and on_paint > 0:  # as measured where it is cut
             per_metre = float(area[covered].sum()) / on_paint
