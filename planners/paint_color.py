@@ -61,9 +61,13 @@ class PaintSegmenter:
         rgb = np.ascontiguousarray(rgb, dtype=np.uint8).reshape(-1, 3)
         if self.gmm is None:
             return _d2(to_lab(rgb), self.mean0, self.cov0) < self.paint.gate_d2
-        if self._lut is None:
-            self._lut = self._mask_lab(to_lab(_LUT_COLOURS))
-        return self._lut[_lut_index(rgb)]
+        if self._lut is None:  # -1: not asked yet; a view shows a few thousand of the table's 262 k colours
+            self._lut = np.full(len(_LUT_COLOURS), -1, dtype=np.int8)
+        idx = _lut_index(rgb)
+        new = np.unique(idx[self._lut[idx] < 0])
+        if len(new):
+            self._lut[new] = self._mask_lab(to_lab(_LUT_COLOURS[new]))
+        return self._lut[idx] > 0
 
     def paint_points(self, rgb: np.ndarray, xyz: np.ndarray) -> np.ndarray:
         """Which of the points (colours, base-frame positions) are paint: the paint's colour, on the piece.
@@ -236,12 +240,11 @@ def _d2_shaded(lab: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray
     rgb = lab2rgb(np.asarray(mean, dtype=np.float64).reshape(1, 1, 3)).reshape(3)
     means = rgb2lab(np.clip(np.outer(SHADES, rgb), 0, 1).reshape(1, -1, 3)).reshape(-1, 3)
     means = means[(means[:, 0] >= MIN_L) | (SHADES == 1.0)]  # near black every colour looks alike
-    inv = np.linalg.inv(cov)
-    best = np.full(len(lab), np.inf)
-    for m in means:  # a handful of light levels, each over every colour at once
-        d = lab - m
-        np.minimum(best, np.einsum("ij,jk,ik->i", d, inv, d), out=best)
-    return best
+    # whitened (inv(cov) = W W^T), |z - zm|^2 = |z|^2 - 2 z.zm + |zm|^2: every light level in one product
+    w = np.linalg.cholesky(np.linalg.inv(cov))
+    z, zm = np.asarray(lab, dtype=np.float64).reshape(-1, 3) @ w, means @ w
+    d2 = (z * z).sum(axis=1)[:, None] - 2.0 * (z @ zm.T) + (zm * zm).sum(axis=1)[None, :]
+    return np.maximum(d2.min(axis=1), 0.0)
 
 
 def _d2(lab: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:

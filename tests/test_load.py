@@ -5,7 +5,7 @@ RSS sampled throughout, then its SQLite store read back. The jobs are real twin 
 `initial_view` profile (cellctl.scan.initial_view: twin built, one D435 frame rendered and turned into clouds,
 coverage scored, result.json written), about 0.3 s each. Nothing is mocked.
 
-About 70 s with the machine otherwise idle, 85 s on 2 cores shared with other work; add -s for the
+About 100 s with the machine otherwise idle (0.46 s a job); add -s for the
 figures. The test judges what the service did (every job, event, query and reply accounted for, memory
 and threads bounded), not how fast: the poller's achieved rate and the query latencies depend on the
 machine's load and are figures of `cellctl bench --load`, which reports them. For the same reason a

@@ -82,6 +82,26 @@ def test_segmenter_finds_the_line_on_textured_metal(finish):
     assert (m & (d < 0.002)).sum() >= 0.7 * (d < 0.002).sum(), finish
 
 
+def test_the_colour_table_filled_as_views_come_answers_as_the_whole_table():
+    """The mask's table is filled only for the colours a view shows (a view shows a few thousand of its
+    262 k); whatever order views come in, each colour's answer is the one the full table gives."""
+    from planners.paint_color import _LUT_COLOURS
+
+    rng = np.random.default_rng(3)
+    metal = rng.normal([110, 100, 95], 25, (3000, 3))
+    paint = rng.normal([200, 30, 30], 12, (300, 3))
+    rgb = np.clip(np.vstack([metal, paint]), 0, 255).astype(np.uint8)
+    xyz = np.vstack([rng.uniform(0, 0.3, (3000, 3)), np.c_[rng.uniform(0, 0.3, 300), rng.uniform(0, 0.01, (300, 2))]])
+    seg = PaintSegmenter(PaintColor())
+    assert seg.fit(rgb, xyz).ok
+    full = seg._mask_lab(to_lab(_LUT_COLOURS))
+    assert 0 < full.sum() < len(full)
+    views = [rng.integers(0, 256, (5000, 3)).astype(np.uint8), rgb, rng.integers(0, 256, (5000, 3)).astype(np.uint8)]
+    for v in views + views[::-1]:
+        q = (v.astype(np.int32) >> 2)
+        assert np.array_equal(seg.mask(v), full[(q[:, 0] << 12) | (q[:, 1] << 6) | q[:, 2]])
+
+
 def test_appearance_set_is_what_the_issue_asks():
     rust = [n for n in FINISHES if n.startswith("rust")]
     from sim.appearance import LIGHTS, PAINTS
