@@ -188,9 +188,7 @@ class PaintSegmenter:
         lights = [(g, w) for w in range(len(WHITES)) for g in GAINS]
         rgb = np.clip(np.array([g * rgb0 * WHITES[w] for g, w in lights]), 0, 1)
         means = rgb2lab(rgb.reshape(1, -1, 3)).reshape(-1, 3)
-        inv = np.linalg.inv(self.cov0)
-        d = lab[None, :, :] - means[:, None, :]  # lights x pixels x 3
-        passed = np.einsum("gij,jk,gik->gi", d, inv, d) < cfg.gate_d2
+        passed = (_d2_to(lab, means, self.cov0) < cfg.gate_d2).T  # lights x pixels
         counts = passed.sum(axis=1)
         n_min = max(3.0, cfg.min_paint_points * FIT_SAMPLES / max(len(lab), FIT_SAMPLES))
         line = (counts >= n_min) & (counts <= cfg.max_share * len(lab))
@@ -240,14 +238,17 @@ def _d2_shaded(lab: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray
     rgb = lab2rgb(np.asarray(mean, dtype=np.float64).reshape(1, 1, 3)).reshape(3)
     means = rgb2lab(np.clip(np.outer(SHADES, rgb), 0, 1).reshape(1, -1, 3)).reshape(-1, 3)
     means = means[(means[:, 0] >= MIN_L) | (SHADES == 1.0)]  # near black every colour looks alike
-    # whitened (inv(cov) = W W^T), |z - zm|^2 = |z|^2 - 2 z.zm + |zm|^2: every light level in one product
-    w = np.linalg.cholesky(np.linalg.inv(cov))
-    z, zm = np.asarray(lab, dtype=np.float64).reshape(-1, 3) @ w, means @ w
-    d2 = (z * z).sum(axis=1)[:, None] - 2.0 * (z @ zm.T) + (zm * zm).sum(axis=1)[None, :]
-    return np.maximum(d2.min(axis=1), 0.0)
+    return _d2_to(lab, means, cov).min(axis=1)
 
 
 def _d2(lab: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """Squared Mahalanobis distances of (N, 3) Lab colours."""
-    d = lab - mean
-    return np.einsum("ij,jk,ik->i", d, np.linalg.inv(cov), d)
+    return _d2_to(lab, np.asarray(mean, dtype=np.float64).reshape(1, 3), cov)[:, 0]
+
+
+def _d2_to(lab: np.ndarray, means: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """(N, M) squared Mahalanobis distances of (N, 3) Lab colours to (M, 3) means of one covariance:
+    whitened (inv(cov) = W W^T), |z - zm|^2 = |z|^2 - 2 z.zm + |zm|^2, every mean in one product."""
+    w = np.linalg.cholesky(np.linalg.inv(cov))
+    z, zm = np.asarray(lab, dtype=np.float64).reshape(-1, 3) @ w, means @ w
+    return np.maximum((z * z).sum(axis=1)[:, None] - 2.0 * (z @ zm.T) + (zm * zm).sum(axis=1)[None, :], 0.0)

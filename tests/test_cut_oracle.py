@@ -7,7 +7,7 @@ from cellctl.bench.oracle import twin_arm
 from cellctl.config import load_cell_config
 from planners.config import load_planners_config
 from sim.scenes import load_scene
-from sim.scenes.paint import closest_points
+from sim.scenes.paint import closest_points, distance_to_mesh
 
 
 def test_the_true_surface_is_sampled_finely_and_seen_from_outside():
@@ -25,8 +25,6 @@ def test_the_true_surface_is_sampled_finely_and_seen_from_outside():
 def test_the_tips_distance_to_the_metal_is_the_exact_one():
     """``true_accuracy``'s tip-to-metal figure through Open3D's BVH (float32 about the mesh's centre)
     agrees with the exact closest point to a micrometre, on and off a piece with faces of every size."""
-    from cellctl.scan.cut import distance_to_mesh
-
     scene = load_scene("t_piece")
     rng = np.random.default_rng(0)
     pts = scene.gt_points[rng.choice(len(scene.gt_points), 3000)] + rng.normal(0, 0.01, (3000, 3))

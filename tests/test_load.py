@@ -3,7 +3,7 @@ loopback, 10 Zenoh client sessions submitting 200 jobs into a queue of 8 (retryi
 50 Hz open-loop poller of status, job list and job records, a subscriber to every event, the service's
 RSS sampled throughout, then its SQLite store read back. The jobs are real twin jobs of the
 `initial_view` profile (cellctl.scan.initial_view: twin built, one D435 frame rendered and turned into clouds,
-coverage scored, result.json written), about 0.3 s each. Nothing is mocked.
+coverage scored, result.json written), about 0.46 s each. Nothing is mocked.
 
 About 100 s with the machine otherwise idle (0.46 s a job); add -s for the
 figures. The test judges what the service did (every job, event, query and reply accounted for, memory

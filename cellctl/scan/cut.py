@@ -171,23 +171,11 @@ def true_accuracy(path: CutPath, kin: Kinematics, cut: CutPathConfig, polylines:
     poses = cut_accuracy(polylines, [b.points for b in path.branches if b.feasible], painted=painted)
     acc["pose_to_line_max_mm"] = poses["path_to_line_max_mm"]
     if metal is not None and flames:
+        from sim.scenes.paint import distance_to_mesh
+
         d = distance_to_mesh(metal, np.vstack([f.tips for f in flames]))
         acc["tip_to_metal_min_mm"], acc["tip_to_metal_max_mm"] = round(1e3 * float(d.min()), 2), round(1e3 * float(d.max()), 2)
     return acc
-
-
-def distance_to_mesh(mesh, points: np.ndarray) -> np.ndarray:
-    """(N,) distances of points to a trimesh's surface: Open3D's BVH (a scan's flame tips are tens of
-    thousands of points a few mm off a mesh of every face size, where a k-d tree over face centres
-    touches many faces). Float32 inside, so both are taken about the mesh's centre (0.1 µm at 1 m)."""
-    import open3d as o3d
-
-    c = np.asarray(mesh.vertices, dtype=np.float64).mean(axis=0)
-    rs = o3d.t.geometry.RaycastingScene()
-    rs.add_triangles(o3d.core.Tensor((np.asarray(mesh.vertices) - c).astype(np.float32)),
-                     o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
-    q = o3d.core.Tensor((np.asarray(points, dtype=np.float64).reshape(-1, 3) - c).astype(np.float32))
-    return rs.compute_distance(q).numpy().astype(np.float64)
 
 
 def clearing_targets(path: CutPath | None, most: int) -> list[tuple[np.ndarray, np.ndarray]]:
