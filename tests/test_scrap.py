@@ -82,6 +82,23 @@ def test_dashes_leave_bare_metal_between_them(tmp_path):
     assert len(islands) >= meta["strokes"] >= 2, (ref, meta)
 
 
+def test_separate_strokes_leave_bare_metal_between_their_paint():
+    """Dashes and strokes side by side keep their centrelines APART_M apart on every piece drawn, so
+    the widest spray leaves metal between them: scaled into a short elbow's patch, dashes 19 mm apart
+    merged into one band of paint (scrap:0:64 before), strokes 11 mm apart on a folded plate (scrap:0:32)."""
+    from sim.scenes.scrap import APART_M
+
+    for ref in scrap_refs(100, 0):
+        _, bp, meta = generate(*parse_ref(ref))
+        if meta["lines"][0] not in ("dashed", "strokes") or len(bp.polylines) < 2:
+            continue
+        lines = [np.asarray(p) for p in bp.polylines]
+        for i in range(len(lines)):
+            for j in range(i + 1, len(lines)):
+                gap = cKDTree(lines[i]).query(lines[j])[0].min()
+                assert gap >= APART_M - 1e-3, (ref, meta["lines"], i, j, gap)
+
+
 def test_a_piece_kept_as_a_scene_file_loads_back_the_same(tmp_path):
     ref = FIRST[4]
     path = write_scene_file(ref, tmp_path)
@@ -134,3 +151,22 @@ def test_the_chart_lies_on_the_face_the_spray_meets(family):
         P = chart.point(np.column_stack([U.ravel(), V.ravel()]))
         d = closest_points(mesh, P)[1]
         assert np.quantile(d, 0.99) < 5e-4, (family, seed, float(d.max()))
+
+
+def test_a_line_inside_a_fold_gets_a_view_the_arm_reaches(tmp_path):
+    """scrap:0:19: a folded plate whose V opens towards the arm's base, the line down inside it. Along
+    its normals tilted up one view survived (beside the base, no collision-free IK) and the scan
+    failed "no initial view is reachable"; the views looked for all round the line let it start."""
+    from cellctl.config import load_cell_config
+    from cellctl.scan.run import run_job
+    from cellctl.scan.spec import JobSpec
+    from sim.scenes.views import FEW_VIEWS
+
+    scene = load_scene("scrap:0:19")
+    assert len(scene.initial_view_candidates) >= FEW_VIEWS
+    cfg, path = load_cell_config(None)
+    twin = cfg.twin.model_copy(update={"execution": "teleport"})
+    res, _ = run_job(JobSpec(cfg.model_copy(update={"twin": twin}), path, "scrap:0:19", "global", noise=False,
+                             max_steps=1, cut=False, run_dir=tmp_path / "run"))
+    assert res.error is None and res.terminated_by != "unreachable", res.error
+    assert res.coverage_percent > 50.0

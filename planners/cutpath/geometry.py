@@ -233,6 +233,59 @@ def end_caps(points: np.ndarray, paint: np.ndarray, metal: cKDTree, half_m: floa
     return p
 
 
+def paint_stops(along: np.ndarray, start: float, gap_m: float, metal_at=None) -> float:
+    """Where a stroke's paint stops along its line: the farthest of the paint's positions ``along``
+    it reached from ``start`` without crossing bare metal longer than ``gap_m`` (-inf with no paint).
+    The paint beyond such a break is another stroke's (the next dash of a dashed line): carried across,
+    the cut runs over metal nobody marked. A break over air (between a grid's bars) is no break: the
+    line goes on over the next bar. ``metal_at(positions)`` says where along the line there is metal
+    (every break counts as bare metal without it)."""
+    a = np.sort(np.asarray(along, dtype=np.float64).ravel())
+    ahead = a[a > start]
+    steps = np.concatenate([[start], ahead])
+    big = np.flatnonzero(np.diff(steps) > gap_m)
+    if metal_at is not None and len(big):  # metal in the middle of the break (beside a bar's edge is no sign)
+        big = big[np.asarray(metal_at(0.5 * (steps[big] + steps[big + 1])), dtype=bool)]
+    reached = ahead[:big[0]] if len(big) else ahead
+    if len(reached):
+        return float(reached[-1])
+    behind = a[a <= start]
+    return float(behind[-1]) if len(behind) else -np.inf
+
+
+def _rounded_end(along: np.ndarray, across: np.ndarray, tip: float, half: float) -> bool:
+    """Whether the paint narrows into a round cap at its ``tip`` (positions ``along`` the line and
+    ``across`` it): a sprayed stroke's end is a half disc, 0.76 of the band's half width at most in its
+    last 0.35 half widths; paint cut off by the metal's edge keeps its width to the tip."""
+    band = across <= 1.5 * half
+    last = band & (along > tip - 0.35 * half) & (along <= tip)
+    body = band & (along > tip - 2.0 * half) & (along <= tip - half)
+    if last.sum() < 4 or body.sum() < 4:
+        return False
+    return float(np.percentile(across[last], 90)) < 0.85 * float(np.percentile(across[body], 90))
+
+
+def _metal_goes_on(metal: cKDTree, e: np.ndarray, t: np.ndarray, tip: float, half: float, spacing: float,
+                   normal: np.ndarray | None, rounded: bool = False) -> bool:
+    """Whether the metal goes on half a width past where the paint stops (``tip`` along ``t`` from
+    ``e``): then the paint ends in a sprayed cap, else at the metal's edge. Where the paint's end is
+    ``rounded`` (``_rounded_end``) and the surface ``normal`` at the end is known, any metal ahead on
+    the line's own face counts (``_same_face``: a pipe curves away from the straight probe, 7 mm below
+    it on a 50 mm pipe, and was taken for an edge, the cut 8 mm past the line's end); paint cut square
+    by a thin bar's edge is the edge still, whatever metal the probe finds beyond."""
+    probe = e + (tip + half) * t
+    if len(metal.query_ball_point(probe, 0.5 * half)) > 0:
+        return True
+    if normal is None or not rounded:
+        return False
+    near = metal.query_ball_point(probe, half)
+    if not near:
+        return False
+    w = metal.data[near] - e
+    ahead = w @ t > tip + 0.25 * half
+    return bool(np.any(ahead & _same_face(w, np.broadcast_to(normal, w.shape), spacing)))
+
+
 def _end_cap(p: np.ndarray, paint: np.ndarray, tree: cKDTree, metal: cKDTree, half: float,
              spacing: float, normals: np.ndarray | None) -> np.ndarray:
     s = arc_length(p)
@@ -250,10 +303,12 @@ def _end_cap(p: np.ndarray, paint: np.ndarray, tree: cKDTree, metal: cKDTree, ha
         return p
     along = v @ t
     across = np.linalg.norm(v - along[:, None] * t, axis=1)
-    tip = float(along[across <= half].max(initial=-np.inf))  # where the paint stops, along the line
+    tip = paint_stops(along[across <= half], 0.0, 2.0 * spacing,  # where this stroke's paint stops, along the line
+                      lambda u: metal.query(e + u[:, None] * t, distance_upper_bound=0.5 * half)[0] < np.inf)
     if not np.isfinite(tip):
         return p
-    on_metal = len(metal.query_ball_point(e + (tip + half) * t, 0.5 * half)) > 0
+    on_metal = _metal_goes_on(metal, e, t, tip, half, spacing, None if normals is None else normals[-1],
+                              _rounded_end(along, across, tip, half))
     goal = tip - half if on_metal else tip  # the cap's centre, or the edge the metal and the paint stop at
     if goal < 0.0:  # the skeleton reached into the cap: its last stretch beyond the centre trimmed off
         short = np.flatnonzero((p - e) @ t < goal)  # (a line that curves back further on stays whole)
@@ -304,8 +359,10 @@ def _end_from_paint(p: np.ndarray, s: np.ndarray, paint: np.ndarray, tree: cKDTr
         speed = max(float(np.linalg.norm(d)), 1e-12)
         d = d / speed
         xe = x(np.array([goal]))[0]
-        ahead = float(((band - xe) @ d).max())  # the paint beyond the point, along the line
-        on_metal = len(metal.query_ball_point(xe + (ahead + half) * d, 0.5 * half)) > 0
+        ahead = paint_stops((band - xe) @ d, 0.0, 2.0 * spacing,  # this stroke's paint beyond the point, along the line
+                            lambda u: metal.query(xe + u[:, None] * d, distance_upper_bound=0.5 * half)[0] < np.inf)
+        on_metal = _metal_goes_on(metal, xe, d, ahead, half, spacing, None if normals is None else normals[-1],
+                                  _rounded_end((band - xe) @ d, res[on_band], ahead, half))
         goal += (ahead - (half if on_metal else 0.0)) / speed  # the cap's centre, or the metal's edge
     if goal <= spacing:
         return None

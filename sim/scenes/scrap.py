@@ -24,6 +24,7 @@ from typing import Callable
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from sim.scenes.catalog import Blueprint, assemble_scene, copy_scene
 from sim.scenes.model import Scene
@@ -35,6 +36,7 @@ BASE_CLEAR_M = 0.2  # no part of the piece within this of the robot's base axis
 MIN_TIP_DEG = 15.0  # the sharpest zigzag tip drawn
 MIN_LINE_M = 0.08  # the shortest line drawn (all its strokes)
 DASH_MIN_M = 0.03  # the shortest dash: longer than the widest spray (a scene file refuses a stroke under its width)
+APART_M = 0.038  # separate strokes' centrelines at least this far apart: 10 mm of metal beside the widest spray
 END_MARGIN_M = 0.022  # a drawn line keeps this far inside its face's patch: half the widest spray and 8 mm
 
 
@@ -556,14 +558,17 @@ def draw_line(kind: str, chart: Chart, rng) -> tuple[list[np.ndarray], dict]:
     elif kind == "dashed":
         base = _dense(_curve(rng, rng.uniform(0.3, 0.5)) if rng.random() < 0.5 else
                       np.array([[0, 0], [rng.uniform(0.3, 0.45), rng.uniform(-0.1, 0.1)]]))
-        s = _arc(base)
-        # the gap between the dashes' centrelines: wider than the spray (at most 28 mm), so the paint has gaps
+        # the gap between the dashes' centrelines: wider than the spray (at most 28 mm), so the paint has gaps;
+        # dashed after the line is fitted to its patch, which would shrink the gaps with the line
         dash, gap = rng.uniform(0.04, 0.08), rng.uniform(0.045, 0.07)
+        base = _dense(_fit([base], chart, rng, margin=END_MARGIN_M)[0])
+        s = _arc(base)
         phase = np.mod(s, dash + gap) < dash
         cuts = np.flatnonzero(np.diff(phase.astype(int)) != 0) + 1
         strokes = [p for p, on in zip(np.split(base, cuts), np.split(phase, cuts))  # a dash cut short at the end:
                    if on[0] and len(p) > 2 and _arc(p)[-1] >= DASH_MIN_M]  # kept only if longer than any spray
         info.update(dash_m=round(float(dash), 3), gap_m=round(float(gap), 3))
+        return strokes, info
     elif kind == "crossing":
         L1, L2 = rng.uniform(0.2, 0.35), rng.uniform(0.15, 0.3)
         a = rng.uniform(0, np.pi)
@@ -629,6 +634,18 @@ def _ends_clear(strokes: list[np.ndarray], chart: Chart) -> bool:
     return bool(np.abs(ends_v[:, None] - np.asarray(chart.edges_v)[None, :]).min() >= END_MARGIN_M)
 
 
+def _apart(lines: list[np.ndarray], kind: str) -> bool:
+    """Separate strokes (dashes, strokes side by side) keep ``APART_M`` between their centrelines: the
+    widest spray leaves bare metal between their paints. Scaled into a small patch they can come
+    closer (a dashed line on a short elbow: 1.5 mm of metal between its dashes' paint), and then paint
+    that merges is one line to anyone reading it, the cell included."""
+    if kind == "crossing" or len(lines) < 2:
+        return True
+    trees = [cKDTree(p) for p in lines]
+    return all(trees[i].query(lines[j], distance_upper_bound=APART_M)[0].min() >= APART_M
+               for i in range(len(lines)) for j in range(i + 1, len(lines)))  # a handful of strokes
+
+
 def _family_of(gen_seed: int, index: int) -> str:
     """Families in turn, in an order shuffled by the generator seed: every family in each run of 13."""
     order = np.random.default_rng([int(gen_seed), 7919]).permutation(len(FAMILY_NAMES))
@@ -647,10 +664,10 @@ def generate(gen_seed: int, index: int) -> tuple[str, Blueprint, dict]:
         strokes, info = draw_line(kind, chart, rng)
         lines = [chart.point(p) for p in strokes]
         long = sum(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in lines) >= MIN_LINE_M
-        rank = 2 * long + _ends_clear(strokes, chart)
+        rank = 4 * _apart(lines, kind) + 2 * long + _ends_clear(strokes, chart)
         if best is None or rank > best[0]:
             best = (rank, strokes, info, lines)
-        if rank == 3:
+        if rank == 7:
             break
     _, strokes, info, lines = best
     # a line off the chart's face (past the end of a pipe, off a plate) is pulled onto the mesh by the

@@ -69,6 +69,50 @@ def _clearance(mesh, points: np.ndarray, spacing: float = 0.005) -> np.ndarray:
     return cKDTree(np.vstack([samples, mesh.vertices])).query(points)[0]
 
 
+#: fewer views than this along the normals (a line inside a V, under an overhang): look all round too
+FEW_VIEWS = 4
+ROUND_DIRECTIONS = 160  # directions over the sphere tried then (the upper ones kept)
+ROUND_MOST = 24  # views so found, at most
+
+
+def _sphere(n: int) -> np.ndarray:
+    """(n,3) unit vectors spread evenly over the sphere (the Fibonacci lattice)."""
+    i = np.arange(n) + 0.5
+    phi, th = np.arccos(1.0 - 2.0 * i / n), np.pi * (1.0 + 5.0**0.5) * i
+    return np.column_stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)])
+
+
+def _views_round(mesh, targets: np.ndarray, normals: np.ndarray, standoff: float, min_eye_z: float,
+                 min_clearance: float, end_gap: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(eye, target) pairs from all round each target, when the blended normals give few views: a line
+    inside a fold's V or under an overhang is seen from few directions, none of them near its normal plus
+    up (scrap:0:19, a fold opening towards the arm's base: one view, none reachable). Eyes in front of
+    the paint's face, above ``min_eye_z``, clear of the piece, with an open sight line (Open3D's ray
+    casting); ordered by the angle from the normal tilted up, the nearest ``ROUND_MOST``."""
+    import open3d as o3d
+
+    d = _sphere(ROUND_DIRECTIONS)
+    d = d[d[:, 2] > 0.05]
+    k = np.arange(len(targets))
+    ti, di, si = (a.ravel() for a in np.meshgrid(k, np.arange(len(d)), np.array([1.0, 1.3]), indexing="ij"))
+    eyes = targets[ti] + standoff * si[:, None] * d[di]
+    ok = (np.einsum("ij,ij->i", d[di], normals[ti]) > 0.1) & (eyes[:, 2] >= min_eye_z)
+    ok[ok] &= _clearance(mesh, eyes[ok]) >= min_clearance
+    c = np.asarray(mesh.vertices, dtype=np.float64).mean(axis=0)  # float32 inside: about the mesh's centre
+    rs = o3d.t.geometry.RaycastingScene()
+    rs.add_triangles(o3d.core.Tensor((np.asarray(mesh.vertices) - c).astype(np.float32)),
+                     o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
+    sight = targets[ti] - eyes
+    dist = np.linalg.norm(sight, axis=1)
+    rays = np.hstack([eyes - c, sight / dist[:, None]]).astype(np.float32)
+    hit = rs.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    ok &= ~(hit < dist - end_gap)
+    up = normals[ti] + np.array([0.0, 0.0, 1.0])
+    up /= np.linalg.norm(up, axis=1, keepdims=True)
+    order = np.argsort(-np.einsum("ij,ij->i", d[di], up)[ok], kind="stable")[:ROUND_MOST]
+    return list(zip(eyes[ok][order], targets[ti][ok][order]))
+
+
 def initial_views(scene: Scene, standoff: float = 0.35, fractions=FRACTIONS, up_blends=UP_BLENDS,
                   min_eye_z: float = 0.15, min_clearance: float = 0.1, end_gap: float = 0.005) -> np.ndarray:
     """(M,4,4) T_base_cam candidates, best first; the scene's fixed initial camera leads.
@@ -99,6 +143,9 @@ def initial_views(scene: Scene, standoff: float = 0.35, fractions=FRACTIONS, up_
     ends = targets - end_gap * sight / np.linalg.norm(sight, axis=1, keepdims=True)
     ok[ok] &= ~segments_blocked(mesh.triangles, eyes[ok], ends[ok])
     poses = [look_at(e, t) for e, t in zip(eyes[ok], targets[ok])]
+    if len(poses) < FEW_VIEWS:
+        poses += [look_at(e, t) for e, t in _views_round(mesh, line[idx], normals, standoff, min_eye_z, min_clearance,
+                                                        end_gap)]
     if scene.initial_camera_pose is not None:
         poses.insert(0, np.asarray(scene.initial_camera_pose, dtype=np.float64))
     return np.array(poses, dtype=np.float64).reshape(-1, 4, 4)
