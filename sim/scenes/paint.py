@@ -121,16 +121,26 @@ def closest_points(mesh: trimesh.Trimesh, points: np.ndarray):
     return best_p, best_d, best_t
 
 
-def distance_to_mesh(mesh, points: np.ndarray) -> np.ndarray:
-    """(N,) distances of points to a trimesh's surface, as ``closest_points`` gives them: Open3D's BVH,
-    for many points off a mesh of every face size (a scan's flame tips), where the k-d tree over face
-    centres touches many faces. Float32 inside, so both are taken about the mesh's centre (0.1 µm at 1 m)."""
+def raycasting_scene(mesh):
+    """(Open3D RaycastingScene of a trimesh, the centre it is taken about): its BVH answers many
+    distance and ray queries at once. Float32 inside, so the mesh is moved to about its centre first
+    (0.1 µm at 1 m); queries subtract the centre too."""
     import open3d as o3d
 
     c = np.asarray(mesh.vertices, dtype=np.float64).mean(axis=0)
     rs = o3d.t.geometry.RaycastingScene()
     rs.add_triangles(o3d.core.Tensor((np.asarray(mesh.vertices) - c).astype(np.float32)),
                      o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
+    return rs, c
+
+
+def distance_to_mesh(mesh, points: np.ndarray) -> np.ndarray:
+    """(N,) distances of points to a trimesh's surface, as ``closest_points`` gives them: Open3D's BVH,
+    for many points off a mesh of every face size (a scan's flame tips), where the k-d tree over face
+    centres touches many faces."""
+    import open3d as o3d
+
+    rs, c = raycasting_scene(mesh)
     q = o3d.core.Tensor((np.asarray(points, dtype=np.float64).reshape(-1, 3) - c).astype(np.float32))
     return rs.compute_distance(q).numpy().astype(np.float64)
 

@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from sim.scenes.model import Scene
-from sim.scenes.paint import closest_points
+from sim.scenes.paint import closest_points, raycasting_scene
 
 FRACTIONS = (0.25, 0.2, 0.3, 0.15, 0.35, 0.5, 0.75)
 #: weight of +z added to the unit normal: 1 views a wall from 45 deg above, 2 from 63 deg, 0.5 from 27
@@ -98,10 +98,7 @@ def _views_round(mesh, targets: np.ndarray, normals: np.ndarray, standoff: float
     eyes = targets[ti] + standoff * si[:, None] * d[di]
     ok = (np.einsum("ij,ij->i", d[di], normals[ti]) > 0.1) & (eyes[:, 2] >= min_eye_z)
     ok[ok] &= _clearance(mesh, eyes[ok]) >= min_clearance
-    c = np.asarray(mesh.vertices, dtype=np.float64).mean(axis=0)  # float32 inside: about the mesh's centre
-    rs = o3d.t.geometry.RaycastingScene()
-    rs.add_triangles(o3d.core.Tensor((np.asarray(mesh.vertices) - c).astype(np.float32)),
-                     o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
+    rs, c = raycasting_scene(mesh)
     sight = targets[ti] - eyes
     dist = np.linalg.norm(sight, axis=1)
     rays = np.hstack([eyes - c, sight / dist[:, None]]).astype(np.float32)
