@@ -456,6 +456,18 @@ def test_cut_accuracy_against_a_known_line():
         cut_accuracy([], [line])
 
 
+def test_a_short_cut_is_a_fragment_only_where_its_paint_goes_on():
+    """A 10 mm cut on a 200 mm line is a fragment (a pierce for a stub); 15 mm cuts over the bars of a
+    grid, where the line lies on metal 16 mm at a time, are whole: the paint is as short."""
+    line = np.column_stack([np.linspace(0, 0.2, 201), np.zeros(201), np.zeros(201)])
+    assert cut_accuracy([line], [line[:11], line[50:]])["fragments"] == 1
+    bars = [np.column_stack([np.arange(x, x + 0.016, 0.001), np.zeros(16), np.zeros(16)]) for x in (0.0, 0.05, 0.1, 0.15)]
+    painted = np.vstack([b + [0.0, dy, 0.0] for b in bars for dy in (-0.004, 0.0, 0.004)])
+    a = cut_accuracy([line], [b[:15] for b in bars], painted=painted)
+    assert a["fragments"] == 0 and a["line_on_metal_m"] == pytest.approx(0.08, abs=0.01)  # 3 mm each side
+    assert cut_accuracy([line], [b[:15] for b in bars])["fragments"] == 4  # the same cuts on a plate
+
+
 # ----------------------------------------------------------------------------- topology
 @pytest.mark.parametrize("segments, strokes", [
     ([((0.3, -0.15), (0.6, 0.15)), ((0.3, 0.15), (0.6, -0.15))], [0.42, 0.42]),  # a crossing: two straight cuts

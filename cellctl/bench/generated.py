@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-FRAGMENT_M = 0.02  # a cut shorter than this is a fragment: a pierce for a stub (unless its paint is as short)
+from planners.metrics import FRAGMENT_M
 ON_LINE_MM = 5.0  # the flame within this of the true line
 STANDOFF_TOL_MM = 3.0  # the tip within standoff +- this of the metal
 
@@ -46,7 +46,8 @@ def piece_rows(doc: dict) -> list[dict]:
             "self_error_points": None if true is None or p.get("cut_share") is None else 100 * (p["cut_share"] - true),
             "unseen_borders": (c.get("unseen_paint") or {}).get("borders"),
             "off_centre_m": p.get("flame_off_centre_m"), "off_paint_m": p.get("flame_off_paint_m"),
-            "cuts": c.get("cuts"), "fragments": sum(1 for x in lengths if x < FRAGMENT_M),
+            "cuts": c.get("cuts"), "short_cuts": sum(1 for x in lengths if x < FRAGMENT_M),
+            "fragments": a.get("fragments") if a.get("fragments") is not None else sum(1 for x in lengths if x < FRAGMENT_M),
             "uncut_m_by_reason": c.get("uncut_m_by_reason") or {},
             "oracle_uncut_m_by_reason": o.get("uncut_m_by_reason") or {},
             "planning_s": c.get("planning_s"), "oracle_planning_s": o.get("planning_s"),
@@ -92,6 +93,7 @@ def overall(rows: list[dict]) -> dict:
         "flame_warned": sum(1 for r in ok if flame_off(r) and flame_warned(r)),
         "flame_near_warned": sum(1 for r in ok if flame_off(r) is False and flame_warned(r)),
         "fragments": sum(r["fragments"] for r in ok), "pieces_with_fragments": sum(1 for r in ok if r["fragments"]),
+        "short_cuts": sum(r.get("short_cuts", r["fragments"]) for r in ok),
         "planning_median_s": _pct([r["planning_s"] for r in ok], 50),
         "scan_percent_median": _pct([r["scan_percent"] for r in rows], 50),
     }
@@ -142,7 +144,8 @@ def section(doc: dict) -> list[str]:
          f"(worst {_f(o['self_error_max_points'], 1)} points) |",
          f"| of those off by more, the cell warned that the paint runs on unseen | {o['self_off_flagged']} of "
          f"{o['self_off']} (and on {o['self_near_flagged']} within 3) |",
-         f"| fragments (cuts under {1000 * FRAGMENT_M:.0f} mm) | {o['fragments']} on {o['pieces_with_fragments']} pieces |",
+         f"| fragments (cuts under {1000 * FRAGMENT_M:.0f} mm along longer paint) | {o['fragments']} on "
+         f"{o['pieces_with_fragments']} pieces (cuts under {1000 * FRAGMENT_M:.0f} mm in all: {o['short_cuts']}) |",
          f"| cut planning, median (s) | {_f(o['planning_median_s'], 2)} |",
          *([f"| true cut coverage's range over the seeds, per piece: max (points) | {_f(max(spread.values()), 1)} "
             f"({sum(1 for v in spread.values() if v <= 5.0)} of {len(spread)} pieces within 5) |"] if spread else []),

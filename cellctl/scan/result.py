@@ -71,6 +71,7 @@ class CutAccuracy(Summary):
     pose_to_line_max_mm: float | None = Field(None, ge=0, description="the planned cut poses only")
     tip_to_metal_min_mm: float | None = Field(None, ge=0, description="the torch tip to the true surface, lit")
     tip_to_metal_max_mm: float | None = Field(None, ge=0)
+    fragments: int | None = Field(None, ge=0, description="cuts under 20 mm along a longer piece of the line's paint")
 
 
 class UncutPaintSummary(Summary):
