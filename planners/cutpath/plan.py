@@ -85,6 +85,7 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
     d_xyz = drop_specks(_xyz_origin(drawing, "drawing")[0])
     surf = _surface(drawing, surface, viewpoint, cfg)
     g, band, half = _line_graph(d_xyz, surf, cfg)
+    paint_tree = cKDTree(d_xyz)
 
     counters = {JUNCTION: 0, END: 0, LOOP: 0}
     label = []
@@ -105,16 +106,29 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
         pts = smooth_resample(poly, cfg.spacing_m, smoothing, closed, corner_scale_m=corner_scale,
                               corner_deg=cfg.corner_deg, paint=corner_paint, held=held)
         pts = center_on_paint(pts, band, cfg.spacing_m, closed, normals=surf.normals(pts), single_band=half is not None)
-        if not closed and END in (g.kinds[a], g.kinds[b]):  # along the centred line; what it adds centred too
-            n = surf.normals(pts)
-            pts = end_caps(pts, d_xyz, surf.tree, band_half_width(pts, d_xyz, cfg.spacing_m, normals=n)
-                           if half is None else half, cfg.spacing_m,
-                           start=g.kinds[a] == END, end=g.kinds[b] == END, normals=n)
-            pts = center_on_paint(pts, band, cfg.spacing_m, closed, normals=surf.normals(pts),
-                                  single_band=half is not None)
-        pts, normals = pivots(*on_surface(pts, surf, cfg.spacing_m, np.array(held)), cfg.pivot_step_deg)
-        poses = torch_poses(pts, normals, cfg.standoff_m, closed)
-        branches.append(Branch(pts, normals, poses, np.full(len(pts), cfg.travel_speed_mps), label[a], label[b], closed))
+        for k, (pts, cut_start, cut_end) in enumerate(on_paint_runs(pts, paint_tree, surf.tree, cfg.spacing_m)):
+            start = cut_start or (not closed and g.kinds[a] == END)
+            end = cut_end or (not closed and g.kinds[b] == END)
+            piece_closed = closed and not (cut_start or cut_end)
+            if start or end:  # along the centred line; what it adds centred too
+                n = surf.normals(pts)
+                hw = band_half_width(pts, d_xyz, cfg.spacing_m, normals=n) if half is None else half
+                if cut_start or cut_end:  # where it turned off its paint: a band width back, then to the cap
+                    s_ = arc_length(pts)
+                    keep = (s_ >= (2.0 * hw if cut_start else -1.0)) & (s_ <= s_[-1] - (2.0 * hw if cut_end else -1.0))
+                    if keep.sum() < 2:
+                        continue
+                    pts, n = pts[keep], n[keep]
+                pts = end_caps(pts, d_xyz, surf.tree, hw, cfg.spacing_m, start=start, end=end, normals=n)
+                pts = center_on_paint(pts, band, cfg.spacing_m, piece_closed, normals=surf.normals(pts),
+                                      single_band=half is not None)
+            kept = [h for h in held if np.min(np.linalg.norm(pts - h, axis=1)) < 0.5 * cfg.spacing_m]
+            pts, normals = pivots(*on_surface(pts, surf, cfg.spacing_m, np.array(kept)), cfg.pivot_step_deg)
+            poses = torch_poses(pts, normals, cfg.standoff_m, piece_closed)
+            first = label[a] if k == 0 and not cut_start else f"{label[a]}~{k}"
+            last = label[b] if not cut_end else f"{label[a]}~{k + 1}"
+            branches.append(Branch(pts, normals, poses, np.full(len(pts), cfg.travel_speed_mps), first, last,
+                                   piece_closed))
     pieces, ignored = short_pieces(d_xyz, strokes, surf, voxel_m=cfg.voxel_m, spacing_m=cfg.spacing_m,
                                    bridge_max_m=cfg.bridge_max_m, min_piece_m=cfg.min_piece_m)
     for j, piece in enumerate(pieces):  # a broken line: a short cut through each piece of paint
@@ -137,6 +151,30 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
     return path
 
 
+
+
+#: a stroke's point farther than this from any paint, over metal, is off the line (bare metal between
+#: two strokes' paint that the skeleton's gap closing joined)
+OFF_PAINT_M = 0.005
+
+
+def on_paint_runs(points: np.ndarray, paint: cKDTree, metal: cKDTree,
+                  spacing_m: float) -> list[tuple[np.ndarray, bool, bool]]:
+    """The stretches of a stroke that keep on its paint, as (points, split at its start, split at its
+    end): a stroke is split where it runs more than ``OFF_PAINT_M`` from any paint over metal. The
+    skeleton's gap closing joins paint up to two voxels apart, across bare metal (two strokes sprayed
+    side by side joined by a U-turn: the flame 19 mm off either line, scrap:0:30); over air (between a
+    grid's bars) there is nothing to cut through and the stroke goes on."""
+    d = paint.query(points, distance_upper_bound=2.0 * OFF_PAINT_M)[0]
+    off = d > OFF_PAINT_M
+    if off.any():
+        off &= metal.query(points, distance_upper_bound=spacing_m)[0] < np.inf
+    if not off.any():
+        return [(points, False, False)]
+    keep = ~off
+    edges = np.diff(np.concatenate([[0], keep.astype(np.int8), [0]]))
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return [(points[i:j], i > 0, j < len(points)) for i, j in zip(starts, stops) if j - i >= 2]
 
 
 def _broken(d_xyz: np.ndarray, cfg: CutPathConfig) -> bool:
