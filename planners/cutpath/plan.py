@@ -113,16 +113,17 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
             if start or end:  # along the centred line; what it adds centred too
                 n = surf.normals(pts)
                 hw = band_half_width(pts, d_xyz, cfg.spacing_m, normals=n) if half is None else half
-                if cut_start or cut_end:  # where it turned off its paint: a band width back, then to the cap
+                if cut_start or cut_end:  # where it turned off its paint: half a band width back, then to the cap
                     s_ = arc_length(pts)
-                    keep = (s_ >= (2.0 * hw if cut_start else -1.0)) & (s_ <= s_[-1] - (2.0 * hw if cut_end else -1.0))
+                    keep = (s_ >= (hw if cut_start else -1.0)) & (s_ <= s_[-1] - (hw if cut_end else -1.0))
                     if keep.sum() < 2:
                         continue
                     pts, n = pts[keep], n[keep]
                 pts = end_caps(pts, d_xyz, surf.tree, hw, cfg.spacing_m, start=start, end=end, normals=n)
                 pts = center_on_paint(pts, band, cfg.spacing_m, piece_closed, normals=surf.normals(pts),
                                       single_band=half is not None)
-            kept = [h for h in held if np.min(np.linalg.norm(pts - h, axis=1)) < 0.5 * cfg.spacing_m]
+            kept = held if not (cut_start or cut_end) else [  # the corners on this side of a split
+                h for h in held if np.min(np.linalg.norm(pts - h, axis=1)) < 2.0 * cfg.spacing_m]
             pts, normals = pivots(*on_surface(pts, surf, cfg.spacing_m, np.array(kept)), cfg.pivot_step_deg)
             poses = torch_poses(pts, normals, cfg.standoff_m, piece_closed)
             first = label[a] if k == 0 and not cut_start else f"{label[a]}~{k}"
@@ -156,22 +157,33 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
 #: a stroke's point farther than this from any paint, over metal, is off the line (bare metal between
 #: two strokes' paint that the skeleton's gap closing joined)
 OFF_PAINT_M = 0.005
+OFF_PAINT_STEP_M = 0.0005  # the stroke sampled this finely between its poses to measure how long it is off
 
 
 def on_paint_runs(points: np.ndarray, paint: cKDTree, metal: cKDTree,
                   spacing_m: float) -> list[tuple[np.ndarray, bool, bool]]:
     """The stretches of a stroke that keep on its paint, as (points, split at its start, split at its
-    end): a stroke is split where it runs more than ``OFF_PAINT_M`` from any paint over metal. The
-    skeleton's gap closing joins paint up to two voxels apart, across bare metal (two strokes sprayed
-    side by side joined by a U-turn: the flame 19 mm off either line, scrap:0:30); over air (between a
-    grid's bars) there is nothing to cut through and the stroke goes on."""
-    d = paint.query(points, distance_upper_bound=2.0 * OFF_PAINT_M)[0]
-    off = d > OFF_PAINT_M
+    end): a stroke is split where it runs more than ``OFF_PAINT_M`` from any paint, over metal, for a
+    spacing or more (sampled every ``OFF_PAINT_STEP_M``). The skeleton's gap closing joins paint up to
+    two voxels apart, across bare metal (two strokes sprayed side by side joined by a U-turn: the flame
+    19 mm off either line, scrap:0:30); over air (between a grid's bars) there is nothing to cut through
+    and the stroke goes on; a point beside a bar's paint is no stretch off it."""
+    from planners.metrics import dense_polylines
+
+    s = arc_length(points)
+    dense = dense_polylines([points], OFF_PAINT_STEP_M)
+    off = paint.query(dense, distance_upper_bound=2.0 * OFF_PAINT_M)[0] > OFF_PAINT_M
     if off.any():
-        off &= metal.query(points, distance_upper_bound=spacing_m)[0] < np.inf
-    if not off.any():
+        off &= metal.query(dense, distance_upper_bound=spacing_m)[0] < np.inf
+    edges = np.diff(np.concatenate([[0], off.astype(np.int8), [0]]))
+    a, b = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    long = (b - a) * OFF_PAINT_STEP_M >= spacing_m
+    if not long.any():
         return [(points, False, False)]
-    keep = ~off
+    sd = np.linspace(0.0, s[-1], len(dense))  # the dense samples' arc lengths
+    keep = np.ones(len(points), bool)
+    for i, j in zip(a[long], b[long]):  # a few stretches: the poses within them, and the one each side
+        keep[max(int(np.searchsorted(s, sd[i])) - 1, 0):int(np.searchsorted(s, sd[j - 1], side="right")) + 1] = False
     edges = np.diff(np.concatenate([[0], keep.astype(np.int8), [0]]))
     starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
     return [(points[i:j], i > 0, j < len(points)) for i, j in zip(starts, stops) if j - i >= 2]

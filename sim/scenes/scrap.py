@@ -226,15 +226,20 @@ def folded_plate(rng):
     turns = rng.uniform(30, 150, folds) * rng.choice([-1, 1], folds)
     legs = rng.uniform(0.08, 0.18, folds + 1)
     # walk the section; keep the heading within +-90 deg of +y so it stays a one-sided plate seen from above
-    pts, heading = [np.zeros(2)], 0.0
-    for i, leg in enumerate(legs):
-        pts.append(pts[-1] + leg * np.array([np.cos(heading), np.sin(heading)]))
-        if i < folds:
+    headings, heading = [0.0], 0.0
+    for i in range(folds):
+        nxt = heading + np.radians(turns[i])
+        if abs(nxt) > np.radians(95):
+            turns[i] = -turns[i]
             nxt = heading + np.radians(turns[i])
-            if abs(nxt) > np.radians(95):
-                turns[i] = -turns[i]
-                nxt = heading + np.radians(turns[i])
-            heading = nxt
+        heading = nxt
+        headings.append(heading)
+    h = np.array(headings)
+    if np.abs(h).max() > np.radians(95):  # a first turn over 95 deg: the range centred on +y, or a leg's
+        h -= 0.5 * (h.max() + h.min())     # upper face looks at the floor (paint sprayed from underneath)
+    pts = [np.zeros(2)]
+    for leg, hd in zip(legs, h):
+        pts.append(pts[-1] + leg * np.array([np.cos(hd), np.sin(hd)]))
     mid = np.array(pts)
     mid[:, 1] -= mid[:, 1].min() - t
     mid[:, 0] -= mid[:, 0].mean()
@@ -646,6 +651,17 @@ def _apart(lines: list[np.ndarray], kind: str) -> bool:
                for i in range(len(lines)) for j in range(i + 1, len(lines)))  # a handful of strokes
 
 
+def _sprayable(lines: list[np.ndarray], mesh: trimesh.Trimesh) -> bool:
+    """Half the line at least on faces a worker standing by the piece sprays: not facing the floor
+    (normal more than 60 deg below the horizon). A fold turned past the vertical puts the chart's face
+    underneath, on the table (scrap:0:45 redrawn: every dash on the underside, no view sees any)."""
+    from sim.scenes.paint import closest_points
+
+    pts = np.vstack(lines)[:: max(1, sum(len(p) for p in lines) // 200)]
+    _, _, tri = closest_points(mesh, pts)
+    return bool(np.mean(mesh.face_normals[tri][:, 2] >= -0.5) >= 0.5)
+
+
 def _family_of(gen_seed: int, index: int) -> str:
     """Families in turn, in an order shuffled by the generator seed: every family in each run of 13."""
     order = np.random.default_rng([int(gen_seed), 7919]).permutation(len(FAMILY_NAMES))
@@ -664,10 +680,10 @@ def generate(gen_seed: int, index: int) -> tuple[str, Blueprint, dict]:
         strokes, info = draw_line(kind, chart, rng)
         lines = [chart.point(p) for p in strokes]
         long = sum(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in lines) >= MIN_LINE_M
-        rank = 4 * _apart(lines, kind) + 2 * long + _ends_clear(strokes, chart)
+        rank = 8 * _sprayable(lines, mesh) + 4 * _apart(lines, kind) + 2 * long + _ends_clear(strokes, chart)
         if best is None or rank > best[0]:
             best = (rank, strokes, info, lines)
-        if rank == 7:
+        if rank == 15:
             break
     _, strokes, info, lines = best
     # a line off the chart's face (past the end of a pipe, off a plate) is pulled onto the mesh by the
