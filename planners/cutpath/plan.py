@@ -116,9 +116,8 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
                 if cut_start or cut_end:  # where it turned off its paint: half a band width back, then to the cap
                     s_ = arc_length(pts)
                     keep = (s_ >= (hw if cut_start else -1.0)) & (s_ <= s_[-1] - (hw if cut_end else -1.0))
-                    if keep.sum() < 2:
-                        continue
-                    pts, n = pts[keep], n[keep]
+                    if keep.sum() >= 2 and np.ptp(s_[keep]) >= 2.0 * hw:  # a short piece (over a bar) kept whole
+                        pts, n = pts[keep], n[keep]
                 pts = end_caps(pts, d_xyz, surf.tree, hw, cfg.spacing_m, start=start, end=end, normals=n)
                 pts = center_on_paint(pts, band, cfg.spacing_m, piece_closed, normals=surf.normals(pts),
                                       single_band=half is not None)
@@ -174,7 +173,7 @@ def on_paint_runs(points: np.ndarray, paint: cKDTree, metal: cKDTree,
     dense = dense_polylines([points], OFF_PAINT_STEP_M)
     off = paint.query(dense, distance_upper_bound=2.0 * OFF_PAINT_M)[0] > OFF_PAINT_M
     if off.any():
-        off &= metal.query(dense, distance_upper_bound=spacing_m)[0] < np.inf
+        off &= metal.query(dense, distance_upper_bound=0.5 * spacing_m)[0] < np.inf  # on it: not beside a bar
     edges = np.diff(np.concatenate([[0], off.astype(np.int8), [0]]))
     a, b = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
     long = (b - a) * OFF_PAINT_STEP_M >= spacing_m
