@@ -111,7 +111,7 @@ def cut_accuracy(true_polylines: list[np.ndarray], cuts: list[np.ndarray], toler
             on = np.unique(np.concatenate([np.asarray(n, dtype=np.int64) for n in near]))
             out["fragments"] += int(not len(on) or piece[on].max() > fragment_m)
     d_line, _ = cKDTree(path).query(line)
-    d_path, _ = cKDTree(line).query(path)
+    d_path, _ = tree.query(path)
     out.update(cut_coverage=round(float(np.mean(d_line <= tolerance_m)), 4),
                path_to_line_mean_mm=round(1e3 * float(d_path.mean()), 3),
                path_to_line_max_mm=round(1e3 * float(d_path.max()), 3),

@@ -32,6 +32,7 @@ def piece_rows(doc: dict) -> list[dict]:
         ocov = o.get("cut_coverage")
         lengths = c.get("cut_lengths_m") or []
         tip_lo, tip_hi = a.get("tip_to_metal_min_mm"), a.get("tip_to_metal_max_mm")
+        short = sum(1 for x in lengths if x < FRAGMENT_M)
         rows.append({
             "ref": r["scene"], "family": meta.get("family"), "lines": meta.get("lines") or meta.get("line_kind"),
             "seed": r["seed"], "error": r.get("error") or c.get("error") or o.get("error"),
@@ -46,8 +47,8 @@ def piece_rows(doc: dict) -> list[dict]:
             "self_error_points": None if true is None or p.get("cut_share") is None else 100 * (p["cut_share"] - true),
             "unseen_borders": (c.get("unseen_paint") or {}).get("borders"),
             "off_centre_m": p.get("flame_off_centre_m"), "off_paint_m": p.get("flame_off_paint_m"),
-            "cuts": c.get("cuts"), "short_cuts": sum(1 for x in lengths if x < FRAGMENT_M),
-            "fragments": a.get("fragments") if a.get("fragments") is not None else sum(1 for x in lengths if x < FRAGMENT_M),
+            "cuts": c.get("cuts"), "short_cuts": short,  # an older bench.json: its fragments are its short cuts
+            "fragments": a.get("fragments") if a.get("fragments") is not None else short,
             "uncut_m_by_reason": c.get("uncut_m_by_reason") or {},
             "oracle_uncut_m_by_reason": o.get("uncut_m_by_reason") or {},
             "planning_s": c.get("planning_s"), "oracle_planning_s": o.get("planning_s"),
@@ -93,7 +94,7 @@ def overall(rows: list[dict]) -> dict:
         "flame_warned": sum(1 for r in ok if flame_off(r) and flame_warned(r)),
         "flame_near_warned": sum(1 for r in ok if flame_off(r) is False and flame_warned(r)),
         "fragments": sum(r["fragments"] for r in ok), "pieces_with_fragments": sum(1 for r in ok if r["fragments"]),
-        "short_cuts": sum(r.get("short_cuts", r["fragments"]) for r in ok),
+        "short_cuts": sum(r["short_cuts"] for r in ok),
         "planning_median_s": _pct([r["planning_s"] for r in ok], 50),
         "scan_percent_median": _pct([r["scan_percent"] for r in rows], 50),
     }

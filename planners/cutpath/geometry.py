@@ -67,9 +67,14 @@ def corners(p: np.ndarray, scale_m: float, min_turn_deg: float) -> np.ndarray:
     sharp = turn > min_turn_deg
     if not sharp.any():
         return np.zeros(0, dtype=np.int64)
-    edges = np.diff(np.concatenate([[0], sharp.astype(np.int8), [0]]))
-    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    starts, stops = true_runs(sharp)
     return np.array([a + int(np.argmax(turn[a:b])) for a, b in zip(starts, stops)], dtype=np.int64)
+
+
+def true_runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(starts, stops) of the runs of True in a bool array, each run ``mask[start:stop]``."""
+    edges = np.diff(np.concatenate([[0], np.asarray(mask).astype(np.int8), [0]]))
+    return np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
 
 
 def smooth_resample(poly: np.ndarray, spacing_m: float, smoothing_m: float, closed: bool = False, *,
@@ -253,6 +258,12 @@ def paint_stops(along: np.ndarray, start: float, gap_m: float, metal_at=None) ->
     return float(behind[-1]) if len(behind) else -np.inf
 
 
+def _metal_along(metal: cKDTree, e: np.ndarray, t: np.ndarray, half: float):
+    """``metal_at`` for ``paint_stops``: whether there is metal within half a half width of the points
+    at the given positions along ``t`` from ``e``."""
+    return lambda u: metal.query(e + u[:, None] * t, distance_upper_bound=0.5 * half)[0] < np.inf
+
+
 def _rounded_end(along: np.ndarray, across: np.ndarray, tip: float, half: float) -> bool:
     """Whether the paint narrows into a round cap at its ``tip`` (positions ``along`` the line and
     ``across`` it): a sprayed stroke's end is a half disc, 0.76 of the band's half width at most in its
@@ -304,7 +315,7 @@ def _end_cap(p: np.ndarray, paint: np.ndarray, tree: cKDTree, metal: cKDTree, ha
     along = v @ t
     across = np.linalg.norm(v - along[:, None] * t, axis=1)
     tip = paint_stops(along[across <= half], 0.0, 2.0 * spacing,  # where this stroke's paint stops, along the line
-                      lambda u: metal.query(e + u[:, None] * t, distance_upper_bound=0.5 * half)[0] < np.inf)
+                      _metal_along(metal, e, t, half))
     if not np.isfinite(tip):
         return p
     on_metal = _metal_goes_on(metal, e, t, tip, half, spacing, None if normals is None else normals[-1],
@@ -359,10 +370,10 @@ def _end_from_paint(p: np.ndarray, s: np.ndarray, paint: np.ndarray, tree: cKDTr
         speed = max(float(np.linalg.norm(d)), 1e-12)
         d = d / speed
         xe = x(np.array([goal]))[0]
-        ahead = paint_stops((band - xe) @ d, 0.0, 2.0 * spacing,  # this stroke's paint beyond the point, along the line
-                            lambda u: metal.query(xe + u[:, None] * d, distance_upper_bound=0.5 * half)[0] < np.inf)
+        along = (band - xe) @ d
+        ahead = paint_stops(along, 0.0, 2.0 * spacing, _metal_along(metal, xe, d, half))  # this stroke's paint beyond
         on_metal = _metal_goes_on(metal, xe, d, ahead, half, spacing, None if normals is None else normals[-1],
-                                  _rounded_end((band - xe) @ d, res[on_band], ahead, half))
+                                  _rounded_end(along, res[on_band], ahead, half))
         goal += (ahead - (half if on_metal else 0.0)) / speed  # the cap's centre, or the metal's edge
     if goal <= spacing:
         return None

@@ -12,7 +12,7 @@ from planners.clouds import Cloud
 from planners.cutpath import _checks
 from planners.cutpath.config import CutPathConfig
 from planners.cutpath.geometry import (Surface, arc_length, band_half_width, center_on_paint, end_caps, on_surface,
-                                      pivots, smooth_resample, torch_poses)
+                                      pivots, smooth_resample, torch_poses, true_runs)
 from planners.cutpath.graph import END, JUNCTION, LOOP, curve_graph, drawing_graph, through_junctions
 from planners.cutpath.outline import line_core
 from planners.cutpath.ladder import (COLLISION, IK_ITERATIONS, RECONFIGURE, Rungs, cut_spline, every_degree,
@@ -174,8 +174,7 @@ def on_paint_runs(points: np.ndarray, paint: cKDTree, metal: cKDTree,
     off = paint.query(dense, distance_upper_bound=2.0 * OFF_PAINT_M)[0] > OFF_PAINT_M
     if off.any():
         off &= metal.query(dense, distance_upper_bound=0.5 * spacing_m)[0] < np.inf  # on it: not beside a bar
-    edges = np.diff(np.concatenate([[0], off.astype(np.int8), [0]]))
-    a, b = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    a, b = true_runs(off)
     long = (b - a) * OFF_PAINT_STEP_M >= spacing_m
     if not long.any():
         return [(points, False, False)]
@@ -183,8 +182,7 @@ def on_paint_runs(points: np.ndarray, paint: cKDTree, metal: cKDTree,
     keep = np.ones(len(points), bool)
     for i, j in zip(a[long], b[long]):  # a few stretches: the poses within them, and the one each side
         keep[max(int(np.searchsorted(s, sd[i])) - 1, 0):int(np.searchsorted(s, sd[j - 1], side="right")) + 1] = False
-    edges = np.diff(np.concatenate([[0], keep.astype(np.int8), [0]]))
-    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    starts, stops = true_runs(keep)
     return [(points[i:j], i > 0, j < len(points)) for i, j in zip(starts, stops) if j - i >= 2]
 
 
