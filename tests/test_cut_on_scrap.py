@@ -82,3 +82,44 @@ def test_strokes_side_by_side_are_cut_each_on_its_own_line():
     near = cKDTree(np.vstack([b.points for b in path.branches]))
     for line in lines:  # and every stroke is cut along most of its length
         assert np.mean(near.query(line)[0] <= 5e-3) >= 0.9
+
+
+def test_a_line_over_a_ridge_crossed_obliquely_stays_on_its_line():
+    """A straight line over an angle's ridge, crossed at 25 deg, its spray 22 mm wide, as the twin scanned it
+    (scrap:0:63; drawing and surface within 25 mm of the paint, tests/data): the outline's side points were
+    moved onto the line in a straight step, which near the ridge leaves the metal and lands beside the line;
+    the skeleton ran 9 mm off it and the cut's poses 5.7 mm. The step follows the paint over the ridge now
+    (outline.walk_on_paint)."""
+    z = np.load(REPO / "tests" / "data" / "angle-ridge-crossed-obliquely-scan.npz")
+    cfg = load_planners_config(REPO / "configs" / "planners.yaml").cutpath
+    path = build_cut_path(z["drawing"].astype(np.float64), z["surface"].astype(np.float64), cfg,
+                          viewpoint=z["viewpoint"].astype(np.float64))
+    line = cKDTree(np.vstack([z[k].astype(np.float64) for k in z.files if k.startswith("line")]))
+    assert len(path.branches) == 1, "one straight stroke, one cut"
+    worst = float(line.query(path.branches[0].points)[0].max())
+    assert worst <= 4e-3, f"the cut runs {1e3 * worst:.1f} mm off the true line"
+
+
+def test_the_walk_onto_the_line_follows_the_metal_over_a_fold():
+    """walk_on_paint on a right-angled fold: from a point on one face, 20 mm inward across the fold at
+    45 deg, the walk ends on the other face, 20 mm from its start along the unfolded metal; a straight
+    step would end in the air beside the fold."""
+    from planners.cutpath.outline import walk_on_paint
+
+    g = np.arange(-0.05, 0.0501, 0.001)
+    X, Y = np.meshgrid(g, g)
+    a = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])[X.ravel() <= 0]  # z = 0, x <= 0
+    b = np.column_stack([np.zeros(X.size), Y.ravel(), X.ravel()])[X.ravel() < 0]  # x = 0, going down
+    paint = np.vstack([a, b])
+    # the normals as the surface's PCA gives them: blended over 5 mm each side of the fold
+    w = np.clip(0.5 + 0.5 * np.concatenate([-a[:, 0], -b[:, 2]]) / 0.005, 0.5, 1.0)
+    on_a = np.arange(len(paint)) < len(a)
+    normals = np.where(on_a[:, None], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]) * w[:, None] \
+        + np.where(on_a[:, None], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]) * (1.0 - w[:, None])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    start = np.array([[-0.01, 0.0, 0.0]])
+    d = np.array([[1.0, 1.0, 0.0]]) / np.sqrt(2.0)
+    end = walk_on_paint(start, d, np.array([[0.0, 0.0, 1.0]]), 0.02, paint, normals, cKDTree(paint), 0.001)
+    assert end.shape == (1, 3)
+    # unfolded: 10 mm to the fold along x and 10 mm down the far face, 14.1 mm along y
+    assert np.allclose(end[0], [0.0, 0.02 / np.sqrt(2.0), -(0.02 / np.sqrt(2.0) - 0.01)], atol=1.5e-3), end

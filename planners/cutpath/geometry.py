@@ -297,16 +297,30 @@ def _metal_goes_on(metal: cKDTree, e: np.ndarray, t: np.ndarray, tip: float, hal
     return bool(np.any(ahead & _same_face(w, np.broadcast_to(normal, w.shape), spacing)))
 
 
+#: a line's normals turning more than this within half a band width: a fold of the metal (a pipe's
+#: curve turns far less), beyond which the line's end is not fitted
+END_FACE_DEG = 30.0
+FLAT_DEG = 10.0  # a face's normals within a half width of each other
+
 def _end_cap(p: np.ndarray, paint: np.ndarray, tree: cKDTree, metal: cKDTree, half: float,
              spacing: float, normals: np.ndarray | None) -> np.ndarray:
     s = arc_length(p)
     width = 2.0 * half
-    if s[-1] >= 3.0 * width:
-        fitted = _end_from_paint(p, s, paint, tree, metal, half, spacing, normals)
+    face = 0  # the end's own face: the line's end is fitted on it, not over the fold before it
+    if normals is not None:
+        k = max(1, int(np.ceil(half / max(spacing, 1e-6))))  # a fold turns the normal within a half width
+        if len(p) > 3 * k:  # between two faces, each flat for a half width (noise on a narrow bar is no fold)
+            c = np.einsum("ij,ij->i", normals[:-k], normals[k:])
+            flat = c[: len(c) - 2 * k] >= np.cos(np.radians(FLAT_DEG))
+            fold = np.flatnonzero((c[k: len(c) - k] < np.cos(np.radians(END_FACE_DEG))) & flat
+                                  & (c[2 * k:] >= np.cos(np.radians(FLAT_DEG)))) + k
+            face = int(fold[-1]) + k if len(fold) else 0
+    if s[-1] >= 3.0 * width and s[-1] - s[face] >= 2.0 * half:
+        fitted = _end_from_paint(p, s, paint, tree, metal, half, spacing, normals, face)
         if fitted is not None:
             return fitted
     e = p[-1]  # short, or its paint is no single band there: from the skeleton's own end
-    back = p[min(int(np.searchsorted(s, s[-1] - width)), len(p) - 2)]  # the direction over a band width
+    back = p[min(max(int(np.searchsorted(s, s[-1] - width)), face), len(p) - 2)]  # its direction over a band width
     t = e - back
     t /= max(np.linalg.norm(t), 1e-12)
     v = paint[tree.query_ball_point(e, 3.0 * half)] - e
@@ -329,7 +343,7 @@ def _end_cap(p: np.ndarray, paint: np.ndarray, tree: cKDTree, metal: cKDTree, ha
 
 
 def _end_from_paint(p: np.ndarray, s: np.ndarray, paint: np.ndarray, tree: cKDTree, metal: cKDTree, half: float,
-                    spacing: float, normals: np.ndarray | None) -> np.ndarray | None:
+                    spacing: float, normals: np.ndarray | None, first: int = 0) -> np.ndarray | None:
     """The stroke's last two band widths rebuilt from their paint: the band's centre line is the
     polynomial curve nearest to its paint (a band is symmetric about it; a cubic follows a line
     that bends or twists there; each point's parameter its foot on the curve, a first guess along
@@ -337,7 +351,7 @@ def _end_from_paint(p: np.ndarray, s: np.ndarray, paint: np.ndarray, tree: cKDTr
     None where the paint is no single band there (another stroke's paint joins it, a corner): the
     skeleton's own end then stands.
     With the surface ``normals`` only the paint on the line's own face (``_same_face``) counts."""
-    j = int(np.searchsorted(s, s[-1] - 4.0 * half))
+    j = max(int(np.searchsorted(s, s[-1] - 4.0 * half)), first)
     pairs = cKDTree(p[j:]).sparse_distance_matrix(tree, 1.5 * half, output_type="coo_matrix")
     keep = np.ones(len(pairs.col), dtype=bool)
     if normals is not None:

@@ -201,10 +201,11 @@ def _trace(A: csr_matrix, pos: np.ndarray) -> _Builder:
     return out
 
 
-def _prune(g: _Builder, min_branch_m: float) -> None:
+def _prune(g: _Builder, min_branch_m: float, islands: bool = True) -> None:
     """Remove spurs (a junction-to-end branch, or a junction's loop onto itself) shorter than
     min_branch_m, the shortest first, so that of a short line with a hair the line survives; then
-    drop isolated pieces that short: noise, not a line to cut."""
+    (with ``islands``) drop isolated pieces that short: noise, not a line to cut, unless a bridge
+    still joins them into the line (a stretch over a plate's rim between two holes)."""
     g.settle()
     while True:
         best, best_len = None, min_branch_m
@@ -223,7 +224,7 @@ def _prune(g: _Builder, min_branch_m: float) -> None:
             if g.kind[k] == END:
                 del g.pos[k], g.kind[k]
         g.settle()
-    for i, (p, a, b) in list(g.branches.items()):
+    for i, (p, a, b) in list(g.branches.items()) if islands else []:
         if g.kind[a] != JUNCTION and g.kind[b] != JUNCTION and (polyline_length(p) < min_branch_m or len(p) < 2):
             g.drop_branch(i)
     used = {k for _, a, b in g.branches.values() for k in (a, b)}
@@ -426,8 +427,9 @@ def curve_graph(points: np.ndarray, cell_m: float = 0.003, link_m: float = 0.008
     w = np.linalg.norm(P[pairs[:, 0]] - P[pairs[:, 1]], axis=1) + 1e-12
     T = minimum_spanning_tree(coo_matrix((w, (pairs[:, 0], pairs[:, 1])), shape=(len(P), len(P))).tocsr())
     b = _trace(((T + T.T) > 0).astype(np.float64).tocsr(), P)
-    _prune(b, min(min_branch_m, bridge_m) if paint is not None and bridge_m > 0 else min_branch_m)
-    if paint is not None and bridge_m > 0:
+    bridging = paint is not None and bridge_m > 0
+    _prune(b, min(min_branch_m, bridge_m) if bridging else min_branch_m, islands=not bridging)
+    if bridging:
         _bridge(b, paint, bridge_m, cell_m)
         _prune(b, min_branch_m)
     keys = list(b.pos)
@@ -439,6 +441,9 @@ def curve_graph(points: np.ndarray, cell_m: float = 0.003, link_m: float = 0.008
 
 #: two free ends continue each other when each one's direction points at the other within this angle
 BRIDGE_DEG = 35.0
+#: ends this share of the bridge's reach apart (a spray width) are joined over paint whatever their directions,
+#: once every pair that continues each other is: a line wrapped over a plate's rim turns back in space there
+NEAR_BRIDGE = 1.0 / 3.0
 
 
 def _end_direction(p: np.ndarray, at_start: bool, back_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -453,7 +458,8 @@ def _end_direction(p: np.ndarray, at_start: bool, back_m: float) -> tuple[np.nda
 def _bridge(g: _Builder, paint: cKDTree, bridge_m: float, step_m: float) -> None:
     """Join free ends that continue each other across a hole in the line points, nearest pairs
     first: within ``bridge_m``, each end's direction pointing at the other within BRIDGE_DEG, and
-    the straight join over paint all the way (every ``step_m``)."""
+    the straight join over paint all the way (every ``step_m``); then ends left within
+    ``NEAR_BRIDGE * bridge_m`` of each other over paint (one band: a wrap over a rim)."""
     ends = []  # (branch id, at_start, point, outward direction)
     for i, (p, a, c) in g.branches.items():
         if len(p) < 2 or a == c:
@@ -468,13 +474,14 @@ def _bridge(g: _Builder, paint: cKDTree, bridge_m: float, step_m: float) -> None
             (i, _, e, t), (j, _, f, u) = ends[x], ends[y]
             d = f - e
             dist = float(np.linalg.norm(d))
-            if not 0 < dist <= bridge_m or d @ t < cos * dist or -(d @ u) < cos * dist:
+            ahead = d @ t >= cos * dist and -(d @ u) >= cos * dist
+            if not 0 < dist <= (bridge_m if ahead else NEAR_BRIDGE * bridge_m):
                 continue
             if i == j and polyline_length(g.branches[i][0]) < 3.0 * bridge_m:  # a closed line: only a long one
                 continue
             line = e + np.linspace(0.0, 1.0, max(int(dist / step_m), 1) + 1)[:, None] * d
             if np.isfinite(paint.query(line, distance_upper_bound=1.5 * step_m)[0]).all():
-                pairs.append((dist, x, y))
+                pairs.append((not ahead, dist, x, y))  # the ends that continue each other first
     used: set[int] = set()
     joined: dict[int, int] = {}  # a branch merged into another lives on under that one's id
 
@@ -483,7 +490,7 @@ def _bridge(g: _Builder, paint: cKDTree, bridge_m: float, step_m: float) -> None
             i = joined[i]
         return i
 
-    for _, x, y in sorted(pairs):
+    for _, _, x, y in sorted(pairs):
         if x in used or y in used:
             continue
         (i, si, e, _), (j, sj, f, _) = ends[x], ends[y]
