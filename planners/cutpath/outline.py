@@ -31,8 +31,9 @@ CORE_M = 0.004
 BEYOND_CELLS = 2.0
 #: opposite sides of the outline: their inward directions at least this far apart (cosine)
 OPPOSITE_COS = -0.7
-#: a walk inward over the paint that turns more than this in one step has gone over a rim (walk_on_paint)
-WALK_TURN_DEG = 60.0
+#: a walk inward over the paint that turns more than this in one step, or in all, has gone round a rim
+WALK_STEP_DEG = 60.0
+WALK_TURN_DEG = 120.0
 
 
 @dataclass
@@ -40,7 +41,7 @@ class Outline:
     points: np.ndarray  # (B,3) paint points on the outline
     inward: np.ndarray  # (B,3) unit, in the tangent plane, into the paint
     half_width_m: float  # half the band's width, between opposite sides (0: not measured)
-    line: np.ndarray  # (K,3) the outline moved inward by the half width over the paint: points on the line
+    line: np.ndarray  # (B,3) the outline moved inward by the half width over the paint: points on the line
 
 
 def _tangent_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -105,12 +106,13 @@ def _turned(v: np.ndarray, n_from: np.ndarray, n_to: np.ndarray) -> np.ndarray:
 
 def walk_on_paint(pts: np.ndarray, inward: np.ndarray, pts_normals: np.ndarray, dist_m: float, paint: np.ndarray,
                   normals: np.ndarray, tree: cKDTree, cell_m: float) -> np.ndarray:
-    """(K,3) the points ``dist_m`` from ``pts`` along ``inward`` over the painted surface, not in a
+    """(B,3) the points ``dist_m`` from ``pts`` along ``inward`` over the painted surface, not in a
     straight line: in steps of about a cloud cell, each laid back onto the plane of the nearest paint
     point and its direction turned with the surface. A band that crosses a fold or a pipe's bend
     obliquely has its line beyond the bend; a straight move would leave the metal there and land
-    beside the line (7 mm on an angle's ridge crossed at 25 deg). A walk that leaves the paint, or
-    turns past ``WALK_TURN_DEG`` in one step (over a plate's rim onto its far face), gives no point."""
+    beside the line (7 mm on an angle's ridge crossed at 25 deg). A walk that leaves the paint, turns
+    past ``WALK_STEP_DEG`` in one step or ``WALK_TURN_DEG`` in all (round a plate's rim onto its far
+    face, where the line wraps the rim and the straight move lands nearer it) gives the straight move."""
     x, d, m = pts.copy(), inward.copy(), pts_normals.copy()
     steps = max(1, int(np.ceil(dist_m / max(cell_m, 1e-4))))
     ok = np.ones(len(x), dtype=bool)
@@ -118,14 +120,14 @@ def walk_on_paint(pts: np.ndarray, inward: np.ndarray, pts_normals: np.ndarray, 
         x = x + (dist_m / steps) * d
         gap, j = tree.query(x)
         n_new = normals[j]
-        c = np.einsum("ij,ij->i", n_new, m)
-        ok &= (gap <= 2.0 * cell_m + dist_m / steps) & (c >= np.cos(np.radians(WALK_TURN_DEG)))
+        ok &= (gap <= 2.0 * cell_m + dist_m / steps) & (np.einsum("ij,ij->i", n_new, m) >= np.cos(np.radians(WALK_STEP_DEG)))
         x = x - np.einsum("ij,ij->i", x - paint[j], n_new)[:, None] * n_new
         d = _turned(d, m, n_new)
         d = d - np.einsum("ij,ij->i", d, n_new)[:, None] * n_new
         d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
         m = n_new
-    return x[ok]
+    ok &= np.einsum("ij,ij->i", m, pts_normals) >= np.cos(np.radians(WALK_TURN_DEG))
+    return np.where(ok[:, None], x, pts + dist_m * inward)
 
 
 def _half_width(pts: np.ndarray, inward: np.ndarray, reach_m: float = 0.05) -> float:
