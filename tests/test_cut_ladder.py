@@ -730,3 +730,17 @@ def test_a_line_over_a_bar_s_edge_runs_to_the_edge_though_metal_lies_beyond():
     normals = np.tile([0.0, 0.0, 1.0], (len(skeleton), 1))
     out = end_caps(skeleton, paint, cKDTree(surf), half, 0.005, start=False, normals=normals)
     assert abs(out[-1, 0] - 0.03) < 0.002, out[-1]
+
+
+def test_the_nozzle_keeps_off_the_table_the_scan_left_out():
+    """The torch's working end, tilted down beside a piece, with no scanned point near it: clear of the
+    surface, but its balls reach below the table's plane, which the arm's floor test leaves to it."""
+    far = np.array([[1.0, 1.0, 1.0]])  # the scan's surface nowhere near
+    axis = np.array([[0.0, 0.0, -1.0]])
+    check = NozzleCheck(far, CFG.torch, CFG.nozzle_margin_m, floor_z=0.0)
+    high, low = np.array([[0.4, 0.0, 0.05]]), np.array([[0.4, 0.0, 0.001]])
+    assert check(high, axis).all() and not check(low, axis).any()
+    tilted = np.array([[np.sin(1.2), 0.0, -np.cos(1.2)]])  # lying nearly flat: its side reaches the table
+    assert not check(np.array([[0.4, 0.0, 0.004]]), tilted).any()  # the nozzle rim 1.6 mm below the table
+    assert check(np.array([[0.4, 0.0, 0.03]]), tilted).all()
+    assert NozzleCheck(far, CFG.torch, CFG.nozzle_margin_m)(low, axis).all(), "no floor given: none checked"

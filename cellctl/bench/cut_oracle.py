@@ -20,7 +20,7 @@ from cellctl.scan.cut import torch_shape, true_accuracy, what_blocks
 from planners.clouds import Cloud
 from planners.config import PlannersConfig
 from planners.cutpath import plan_cut_path, torch_kinematics
-from planners.motion.collision import CollisionChecker, CollisionConfig, RobotCollisionModel
+from planners.motion.collision import FLOOR_Z_M, CollisionChecker, CollisionConfig, RobotCollisionModel
 
 SURFACE_STEP_M = 0.002  # the true surface's samples: as fine as the scan's de-duplicated cloud
 SENSOR_OFF_M = 0.3  # each true surface sample is "seen" from this far out along its normal
@@ -56,7 +56,7 @@ def oracle_cut(scene, arm_model, q_start: np.ndarray, ccfg: CollisionConfig, pcf
     t0 = time.perf_counter()
     path = plan_cut_path(paint, surface, kin, np.asarray(q_start, dtype=np.float64), cut, viewpoint=viewpoint,
                          is_free=checker.free, explain=what_blocks(checker), max_vel=m.max_velocity, max_acc=m.max_acceleration,
-                         max_jerk=m.max_jerk, park_q=park_q)
+                         max_jerk=m.max_jerk, park_q=park_q, floor_z=FLOOR_Z_M)
     planning = time.perf_counter() - t0
     gaps: dict[str, float] = {}
     for g in path.gaps:

@@ -14,7 +14,7 @@ from planners.config import CutPathConfig
 from planners.cutpath import CutPath, Surface, plan_cut_path, torch_kinematics
 from planners.cutpath.paint_report import cut_against_paint, flame_path
 from planners.grid import OccupancyGrid
-from planners.motion.collision import CollisionChecker, CollisionConfig, RobotCollisionModel, TorchShape
+from planners.motion.collision import FLOOR_Z_M, CollisionChecker, CollisionConfig, RobotCollisionModel, TorchShape
 from planners.motion.kinematics import Kinematics
 from planners.open_edges import unseen_paint
 from sim.config import TwinToolConfig
@@ -79,7 +79,7 @@ def plan_cut(arm: Arm, ccfg: CollisionConfig, cut: CutPathConfig, grid: Occupanc
         path = plan_cut_path(drawing, surface, kin, arm.joint_positions(), cut, viewpoint=viewpoint,
                              is_free=checker.free, unseen=unseen, cell_m=grid.voxel,
                              explain=what_blocks(checker, "the scanned piece (or space not seen yet)"), max_vel=m.max_velocity,
-                             max_acc=m.max_acceleration, max_jerk=m.max_jerk, park_q=park_q)
+                             max_acc=m.max_acceleration, max_jerk=m.max_jerk, park_q=park_q, floor_z=FLOOR_Z_M)
     except ValueError as e:
         summary.error = str(e)
         summary.planning_s = time.perf_counter() - t0

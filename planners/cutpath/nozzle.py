@@ -65,10 +65,12 @@ class NozzleCheck:
     of cells of side ``cell_m`` nobody has seen into, each an obstacle as large as its bounding ball
     for the head (the nozzle works within a cell of the metal, where the cells next to a surface seen
     at a slant are often unseen); pass only those in front of the surface: the ones behind it are
-    the metal's inside, which the surface already bounds."""
+    the metal's inside, which the surface already bounds. ``floor_z``: the plane the piece stands on
+    (the base frame's z = 0 in the cell), which no ball of the working end may come within the margin of:
+    the scan keeps little of the table, and the arm's own floor test leaves the working end out."""
 
     def __init__(self, surface_xyz: np.ndarray | cKDTree, torch: TorchConfig, margin_m: float,
-                 unseen: np.ndarray | None = None, cell_m: float = 0.0) -> None:
+                 unseen: np.ndarray | None = None, cell_m: float = 0.0, floor_z: float | None = None) -> None:
         if isinstance(surface_xyz, cKDTree):  # the surface's own index (geometry.Surface.tree)
             self.tree = surface_xyz
         else:
@@ -80,6 +82,7 @@ class NozzleCheck:
         self.offsets, self.radii = nozzle_balls(torch)
         self.head = self.offsets >= torch.nozzle_length_m  # the nozzle works closer to the metal than a cell
         self.margin = float(margin_m)
+        self.floor_z = None if floor_z is None else float(floor_z)
         self._torch = torch
 
     def __call__(self, tips: np.ndarray, axes: np.ndarray) -> np.ndarray:
@@ -94,12 +97,26 @@ class NozzleCheck:
         clear = (d.reshape(centres.shape[:-1]) > reach).all(axis=-1)
         if not clear.all():  # the balls are a broad phase: the torch's own shape decides
             clear[~clear] = self._solid_clear(tips[~clear], axes[~clear], centres[~clear])
+        if self.floor_z is not None:  # the table the piece lies on: rarely in the scan, always there; the
+            # torch's lowest point (the flat nozzle's rim, or its side when it lies low) above it by the margin
+            clear &= self._lowest(tips, axes) >= self.floor_z + self.margin
         head = self.head
         if self.unseen is not None and head.any():
             reach = self.radii[head] + self.margin + self.cell_reach
             d, _ = self.unseen.query(centres[..., head, :].reshape(-1, 3), distance_upper_bound=float(reach.max()))
             clear &= (d.reshape(centres.shape[:-2] + (int(head.sum()),)) > reach).all(axis=-1)
         return clear
+
+    def _lowest(self, tips: np.ndarray, axes: np.ndarray) -> np.ndarray:
+        """(...) the lowest z of the working end's solid: its profile (``frustum_distance``'s radius
+        from ``nozzle_radius_m`` at the tip to ``radius_m`` at ``nozzle_length_m``, then the head up to
+        ``fine_length_m``) swept round the axis, lowest at each profile vertex where the axis tilts."""
+        t = self._torch
+        u = np.array([0.0, t.nozzle_length_m, t.fine_length_m])  # back from the tip along -axis
+        r = np.array([t.nozzle_radius_m, t.radius_m, t.radius_m])
+        az = axes[..., 2:3]
+        sideways = np.sqrt(np.clip(1.0 - az**2, 0.0, 1.0))  # the circle's lowest point: r times the axis' tilt
+        return (tips[..., 2:3] - u * az - r * sideways).min(axis=-1)
 
     def _solid_clear(self, tips: np.ndarray, axes: np.ndarray, centres: np.ndarray) -> np.ndarray:
         """(M,) bool for tips and axes (M,3) and their ball centres (M,K,3): no surface point within

@@ -542,16 +542,18 @@ def _time_run(b: Branch, kin: Kinematics, q_here: np.ndarray, cfg: CutPathConfig
 def plan_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | None, kin: Kinematics,
                   q_start: np.ndarray, cfg: CutPathConfig | None = None, *, viewpoint: np.ndarray | None = None,
                   is_free: IsFree | None = None, unseen: np.ndarray | None = None, cell_m: float = 0.0,
-                  explain=None, **limits) -> CutPath:
+                  explain=None, floor_z: float | None = None, **limits) -> CutPath:
     """build_cut_path then plan_cut, the torch's working end (``torch.fine_length_m``) kept
-    ``nozzle_margin_m`` off the surface cloud (the drawing's own points when there is no surface)
-    and off the ``unseen`` cells (centres, side ``cell_m``) in front of it (``is_free`` checks the rest)."""
+    ``nozzle_margin_m`` off the surface cloud (the drawing's own points when there is no surface),
+    off the ``unseen`` cells (centres, side ``cell_m``) in front of it and above the plane z = ``floor_z``
+    the piece stands on (``is_free`` checks the rest)."""
     cfg = cfg or CutPathConfig()
     surf = _surface(drawing, surface, viewpoint, cfg)
     path = build_cut_path(drawing, surf, cfg, viewpoint=viewpoint)
     near = _in_front(unseen, surf, path, cfg, cell_m)
     return plan_cut(path, kin, q_start, cfg, is_free=is_free, explain=explain,
-                    nozzle_free=NozzleCheck(surf.tree, cfg.torch, cfg.nozzle_margin_m, near, cell_m), **limits)
+                    nozzle_free=NozzleCheck(surf.tree, cfg.torch, cfg.nozzle_margin_m, near, cell_m, floor_z=floor_z),
+                    **limits)
 
 
 def _in_front(unseen: np.ndarray | None, surf: Surface, path: CutPath, cfg: CutPathConfig, cell_m: float) -> np.ndarray:

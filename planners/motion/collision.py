@@ -73,6 +73,10 @@ class StaticBox(BaseModel):
     size_m: tuple[_Size3, _Size3, _Size3]
 
 
+#: the floor (the table the piece stands on) is the plane z = 0 of the robot base frame
+FLOOR_Z_M = 0.0
+
+
 class CollisionConfig(BaseModel):
     """Collision checking parameters. Units are in the names.
 
