@@ -112,7 +112,8 @@ def walk_on_paint(pts: np.ndarray, inward: np.ndarray, pts_normals: np.ndarray, 
     obliquely has its line beyond the bend; a straight move would leave the metal there and land
     beside the line (7 mm on an angle's ridge crossed at 25 deg). A walk that leaves the paint, turns
     past ``WALK_STEP_DEG`` in one step or ``WALK_TURN_DEG`` in all (round a plate's rim onto its far
-    face, where the line wraps the rim and the straight move lands nearer it) gives the straight move."""
+    face, where the line wraps the rim and the straight move lands nearer it) gives the straight move,
+    and so does one that lands within half a cell of it (a flat face, a pipe's gentle curve)."""
     x, d, m = pts.copy(), inward.copy(), pts_normals.copy()
     steps = max(1, int(np.ceil(dist_m / max(cell_m, 1e-4))))
     ok = np.ones(len(x), dtype=bool)
@@ -127,7 +128,9 @@ def walk_on_paint(pts: np.ndarray, inward: np.ndarray, pts_normals: np.ndarray, 
         d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
         m = n_new
     ok &= np.einsum("ij,ij->i", m, pts_normals) >= np.cos(np.radians(WALK_TURN_DEG))
-    return np.where(ok[:, None], x, pts + dist_m * inward)
+    straight = pts + dist_m * inward
+    ok &= np.linalg.norm(x - straight, axis=1) > 0.5 * cell_m  # on a flat or gently curved face they agree
+    return np.where(ok[:, None], x, straight)
 
 
 def _half_width(pts: np.ndarray, inward: np.ndarray, reach_m: float = 0.05) -> float:
