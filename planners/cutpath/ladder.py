@@ -340,7 +340,7 @@ def _reach_anyway(kin: Kinematics, tips: np.ndarray, axes: np.ndarray, in_reach:
 def _blockers(g: Gap, layer_reason: list[str], Qf: np.ndarray, solved: np.ndarray, valid: np.ndarray,
               found: dict[int, np.ndarray], explain: Explain) -> str:
     """What the configurations holding the torch in a collision gap hit, counted over a handful of its
-    layers: "every configuration ... collides: the piece (12), the floor (3); the nozzle touches the metal (4)"."""
+    layers: "every configuration ... collides: the piece (12), the floor (3); the nozzle touches the metal or the table (4)"."""
     lay = [k for k in g.uncut_layers if layer_reason[k] == COLLISION]
     if not lay:
         return ""
@@ -349,7 +349,8 @@ def _blockers(g: Gap, layer_reason: list[str], Qf: np.ndarray, solved: np.ndarra
     for k in lay:  # a handful of layers, each one batch
         nozzle = solved[k] & ~valid[k]
         if nozzle.any():
-            counts["the nozzle touches the metal"] = counts.get("the nozzle touches the metal", 0) + int(nozzle.sum())
+            what = "the nozzle touches the metal or the table"
+            counts[what] = counts.get(what, 0) + int(nozzle.sum())
         Q = Qf[k][solved[k] & valid[k]] if (solved[k] & valid[k]).any() else found.get(k, np.zeros((0, Qf.shape[2])))
         for what in explain(Q[:8]):
             if what:
