@@ -300,7 +300,7 @@ def _metal_goes_on(metal: cKDTree, e: np.ndarray, t: np.ndarray, tip: float, hal
 #: a line's normals turning more than this within half a band width: a fold of the metal (a pipe's
 #: curve turns far less), beyond which the line's end is not fitted
 END_FACE_DEG = 30.0
-FLAT_DEG = 10.0  # a face's normals within a half width of each other
+FLAT_DEG = 15.0  # a face's normals within a half width of each other
 
 def _end_cap(p: np.ndarray, paint: np.ndarray, tree: cKDTree, metal: cKDTree, half: float,
              spacing: float, normals: np.ndarray | None) -> np.ndarray:
