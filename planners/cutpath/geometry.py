@@ -302,6 +302,7 @@ def _metal_goes_on(metal: cKDTree, e: np.ndarray, t: np.ndarray, tip: float, hal
 END_FACE_DEG = 30.0
 FLAT_DEG = 15.0  # a face's normals within a half width of each other
 
+
 def _end_cap(p: np.ndarray, paint: np.ndarray, tree: cKDTree, metal: cKDTree, half: float,
              spacing: float, normals: np.ndarray | None) -> np.ndarray:
     s = arc_length(p)

@@ -36,20 +36,27 @@ def nozzle_balls(torch: TorchConfig) -> tuple[np.ndarray, np.ndarray]:
     return u, np.hypot(s / 2, widest)
 
 
+def _profile(torch: TorchConfig) -> np.ndarray:
+    """(5,2) the outline of the torch's first ``fine_length_m`` as (back from the tip, off the axis):
+    the axis at the tip, the nozzle's rim, the taper's top (``nozzle_length_m``), the head's top, the axis."""
+    L, F = torch.nozzle_length_m, torch.fine_length_m
+    rn, R = torch.nozzle_radius_m, torch.radius_m
+
+    def radius(x: float) -> float:
+        return rn + (R - rn) * min(max(x / L, 0.0), 1.0) if L > 0 else R
+
+    Lc = min(L, F)
+    return np.array([[0.0, 0.0], [0.0, radius(0.0)], [Lc, radius(Lc)], [F, radius(F)], [F, 0.0]])
+
+
 def frustum_distance(u: np.ndarray, rho: np.ndarray, torch: TorchConfig) -> np.ndarray:
     """Distance (0 inside) from points at ``u`` back from the tip along the axis and ``rho`` off it
     to the torch's first ``fine_length_m``: the solid of revolution of the taper from
     ``nozzle_radius_m`` at the tip to ``radius_m`` at ``nozzle_length_m``, then the head. Its
     profile is convex, so outside it the distance is the nearest of its four edges."""
-    L, F = torch.nozzle_length_m, torch.fine_length_m
-    rn, R = torch.nozzle_radius_m, torch.radius_m
-
-    def radius(x):
-        return rn + (R - rn) * np.clip(x / L, 0.0, 1.0) if L > 0 else R + 0.0 * x
-
-    inside = (u >= 0.0) & (u <= F) & (rho <= radius(u))
-    Lc = min(L, F)
-    V = np.array([[0.0, 0.0], [0.0, float(radius(0.0))], [Lc, float(radius(Lc))], [F, float(radius(F))], [F, 0.0]])
+    V = _profile(torch)
+    F = torch.fine_length_m
+    inside = (u >= 0.0) & (u <= F) & (rho <= np.interp(u, V[1:4, 0], V[1:4, 1]))
     Q = np.stack([u, rho], axis=-1)
     d = np.full(u.shape, np.inf)
     for a, b in zip(V[:-1], V[1:]):  # the profile's four edges
@@ -66,7 +73,7 @@ class NozzleCheck:
     for the head (the nozzle works within a cell of the metal, where the cells next to a surface seen
     at a slant are often unseen); pass only those in front of the surface: the ones behind it are
     the metal's inside, which the surface already bounds. ``floor_z``: the plane the piece stands on
-    (the base frame's z = 0 in the cell), which no ball of the working end may come within the margin of:
+    (the base frame's z = 0 in the cell), which the working end's solid may not come within the margin of:
     the scan keeps little of the table, and the arm's own floor test leaves the working end out."""
 
     def __init__(self, surface_xyz: np.ndarray | cKDTree, torch: TorchConfig, margin_m: float,
@@ -108,12 +115,9 @@ class NozzleCheck:
         return clear
 
     def _lowest(self, tips: np.ndarray, axes: np.ndarray) -> np.ndarray:
-        """(...) the lowest z of the working end's solid: its profile (``frustum_distance``'s radius
-        from ``nozzle_radius_m`` at the tip to ``radius_m`` at ``nozzle_length_m``, then the head up to
-        ``fine_length_m``) swept round the axis, lowest at each profile vertex where the axis tilts."""
-        t = self._torch
-        u = np.array([0.0, t.nozzle_length_m, t.fine_length_m])  # back from the tip along -axis
-        r = np.array([t.nozzle_radius_m, t.radius_m, t.radius_m])
+        """(...) the lowest z of the working end's solid: its profile (``_profile``) swept round the
+        axis, lowest at one of the profile's outer vertices, by its radius times the axis' tilt."""
+        u, r = _profile(self._torch)[1:4].T  # the outer vertices, back from the tip along -axis
         az = axes[..., 2:3]
         sideways = np.sqrt(np.clip(1.0 - az**2, 0.0, 1.0))  # the circle's lowest point: r times the axis' tilt
         return (tips[..., 2:3] - u * az - r * sideways).min(axis=-1)

@@ -79,16 +79,14 @@ def outline(paint: np.ndarray, normals: np.ndarray, half_width_m: float | None =
     if on.sum() < 6:
         return empty
     out = np.cos(mid[on])[:, None] * e1[on] + np.sin(mid[on])[:, None] * e2[on]
-    pts, inward = paint[on], -out
+    pts, inward, pn = paint[on], -out, n[on]
     if metal is not None:
         beyond = pts - BEYOND_CELLS * cell_m * inward
         drawn = (np.isfinite(metal.query(beyond, distance_upper_bound=1.5 * cell_m)[0])  # metal there,
                  & ~np.isfinite(paint_tree.query(beyond, distance_upper_bound=0.75 * cell_m)[0]))  # bare
-        pts, inward, pn = pts[drawn], inward[drawn], n[on][drawn]
+        pts, inward, pn = pts[drawn], inward[drawn], pn[drawn]
         if len(pts) < 6:
             return empty
-    else:
-        pn = n[on]
     half = _half_width(pts, inward) if half_width_m is None else float(half_width_m)
     line = walk_on_paint(pts, inward, pn, half, paint, n, paint_tree, cell_m) if half > 0 else np.zeros((0, 3))
     return Outline(pts, inward, half, line)
