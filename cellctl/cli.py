@@ -290,8 +290,9 @@ def _print_summary(r, run_dir: Path) -> None:
                                  + (f"; {c.error}" if c.error else "")))
         if p := c.paint:
             left = sum(u.length_m for u in p.uncut)
-            rows.append(("cut vs paint", f"the flame passes over {100 * p.cut_share:.1f} % of the paint seen (a "
-                                         f"{1000 * p.line_length_m:.0f} mm line, {p.spray_width_mm:.0f} mm wide); "
+            rows.append(("cut vs paint", f"{100 * c.told_share:.1f} % of the {1000 * c.told_length_m:.0f} mm line on "
+                                         f"the paint is cut; the flame passes over {100 * p.cut_share:.1f} % of the "
+                                         f"painted area ({p.spray_width_mm:.0f} mm wide); "
                                          f"{1000 * left:.0f} mm of it uncut; the lit flame at most "
                                          f"{p.flame_off_paint_max_mm} mm off the paint"))
         for msg in c.warnings:

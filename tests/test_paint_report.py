@@ -207,3 +207,22 @@ def test_the_generated_report_gives_each_piece_s_spread_over_seeds():
     assert seed_spread(rows) == {"scrap:4:0": pytest.approx(7.0)}
     assert "| true cut coverage's range over the seeds, per piece: max (points) | 7.0 (0 of 1 pieces within 5) |" \
         in "\n".join(section(doc))
+
+
+def test_the_told_share_is_the_line_on_the_band_centre_under_the_flame_and_a_loop_beside_it_is_no_line():
+    """The told share (``line_share``) judges the measured line as the truth judges the true one: half a
+    line cut is half (plus the tolerance past the cut's end), and a loop of the line wandering inside the
+    band beside its centre, left uncut, is not counted as line the cut missed."""
+    line = np.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]])
+    paint = _band(line)
+    normals = np.tile([0.0, 0.0, 1.0], (len(paint), 1))
+    half = paint_report(paint, normals, VOXEL, HALF, 0.005, [_flame(_line(line[0], [0.15, 0.0, 0.0]))], paint,
+                        line=[line])
+    assert half.line_share == pytest.approx((0.15 + 0.005) / 0.3, abs=0.03)
+    assert half.line_on_paint_m == pytest.approx(0.3, abs=0.01)
+    whole = [_flame(_line(line[0], line[1]))]
+    loop = np.array([[0.1, 0.0, 0.0], [0.12, 0.008, 0.0], [0.16, 0.008, 0.0], [0.18, 0.0, 0.0]])
+    rep = paint_report(paint, normals, VOXEL, HALF, 0.005, whole, paint, line=[line, loop])
+    assert rep.line_share >= 0.97, rep.line_share  # the loop's stretch 8 mm beside the centre is no line
+    none = paint_report(paint, normals, VOXEL, HALF, 0.005, [], paint, line=[line])
+    assert none.line_share == 0.0

@@ -1,8 +1,9 @@
 """The generated-pieces bench (`cellctl bench --generated N`): per piece and over all of them, the cell's
 cut beside the cut oracle's, and the cell's own report beside the truth.
 
-Figures per piece: scan coverage; the cell's self-reported cut share (the paint under the flame,
-``PaintCheck.cut_share``) and its line's own share; the true cut coverage (the true line within 5 mm of
+Figures per piece: scan coverage; the cell's self-reported cut share (what the operator is told:
+``CutPathSummary.told_share``, the line on the paint under the flame), the painted area's share
+(``PaintCheck.cut_share``) and its line's own share; the true cut coverage (the true line within 5 mm of
 the flame's path at every lit sample); the oracle's; the flame's largest distance from the true line and
 the tip's range off the true metal over the lit motion; cuts and fragments (cuts under
 ``FRAGMENT_M``); gaps by reason; cut planning time. Over all pieces: the medians and 5th percentiles
@@ -29,6 +30,7 @@ def piece_rows(doc: dict) -> list[dict]:
         p = c.get("paint") or {}
         o = oracles.get(r["scene"]) or {}
         true = a.get("cut_coverage")
+        told = p.get("line_share") if p.get("line_share") is not None else p.get("cut_share")  # older bench.json
         ocov = o.get("cut_coverage")
         lengths = c.get("cut_lengths_m") or []
         tip_lo, tip_hi = a.get("tip_to_metal_min_mm"), a.get("tip_to_metal_max_mm")
@@ -37,14 +39,14 @@ def piece_rows(doc: dict) -> list[dict]:
             "ref": r["scene"], "family": meta.get("family"), "lines": meta.get("lines") or meta.get("line_kind"),
             "seed": r["seed"], "error": r.get("error") or c.get("error") or o.get("error"),
             "scan_percent": r["coverage"]["percent"],
-            "self_share": p.get("cut_share"), "own_share": c.get("fraction"),
+            "self_share": told, "area_share": p.get("cut_share"), "own_share": c.get("fraction"),
             "true_coverage": true, "oracle_coverage": ocov,
             "ratio": None if true is None or not ocov else true / ocov,
             "flame_to_line_max_mm": a.get("path_to_line_max_mm"), "pose_to_line_max_mm": a.get("pose_to_line_max_mm"),
             "tip_to_metal_mm": None if tip_lo is None else (tip_lo, tip_hi),
             "standoff_ok": None if tip_lo is None else (abs(tip_lo - standoff_mm) <= STANDOFF_TOL_MM
                                                         and abs(tip_hi - standoff_mm) <= STANDOFF_TOL_MM),
-            "self_error_points": None if true is None or p.get("cut_share") is None else 100 * (p["cut_share"] - true),
+            "self_error_points": None if true is None or told is None else 100 * (told - true),
             "unseen_borders": (c.get("unseen_paint") or {}).get("borders"),
             "off_centre_m": p.get("flame_off_centre_m"), "off_paint_m": p.get("flame_off_paint_m"),
             "cuts": c.get("cuts"), "short_cuts": short,  # an older bench.json: its fragments are its short cuts
@@ -129,8 +131,10 @@ def section(doc: dict) -> list[str]:
          f"{o['pieces']} pieces of generator seed {g.get('gen_seed')} ({o['errors']} with an error). The cell's cut is "
          "measured on the flame spot at every sample of its planned motion with the flame lit; the oracle is the "
          "same cut planner given the true paint, the true surface and the true piece as its collision scene "
-         "(cellctl/bench/cut_oracle.py). Self-reported = the share of the paint the scan saw under the flame's "
-         "path (never the cell's own line); own line = the share its skeleton claims.", "",
+         "(cellctl/bench/cut_oracle.py). Self-reported = what the operator is told: the line the paint gives, where it "
+         "lies on the band's centre, within 5 mm of the flame on the band's centre (the paint no line follows counted "
+         "uncut); paint area = the share of the painted area under the flame's path (the independent check); own "
+         "line = the share its skeleton's length claims.", "",
          "| figure | value |", "|---|--:|",
          f"| true cut coverage, median (%) | {_f(o['true_coverage_median'], 1, 100)} |",
          f"| oracle's cut coverage, median (%) | {_f(o['oracle_coverage_median'], 1, 100)} |",
@@ -151,17 +155,17 @@ def section(doc: dict) -> list[str]:
          *([f"| true cut coverage's range over the seeds, per piece: max (points) | {_f(max(spread.values()), 1)} "
             f"({sum(1 for v in spread.values() if v <= 5.0)} of {len(spread)} pieces within 5) |"] if spread else []),
          f"| scan coverage, median (%) | {_f(o['scan_percent_median'], 1)} |", "",
-         "| piece | family | lines | scan (%) | self-reported (%) | own line (%) | true (%) | oracle (%) | true/oracle | "
+         "| piece | family | lines | scan (%) | self-reported (%) | paint area (%) | own line (%) | true (%) | oracle (%) | true/oracle | "
          "flame to line max (mm) | at poses (mm) | tip off metal (mm) | cuts | fragments | uncut by reason (mm) | "
          "oracle uncut (mm) | paint runs on unseen (borders) | cut planning (s) |",
-         "|---|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|---|---|--:|--:|"]
+         "|---|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|---|---|--:|--:|"]
     for r in rows:
         lines = r["lines"]
         lines = ", ".join(lines) if isinstance(lines, (list, tuple)) else (lines or "–")
         tip = "–" if r["tip_to_metal_mm"] is None else f"{r['tip_to_metal_mm'][0]:.1f}-{r['tip_to_metal_mm'][1]:.1f}"
         err = f" **error**: {str(r['error']).splitlines()[0][:80]}" if r["error"] else ""
         L.append(f"| {r['ref']} | {r['family'] or '–'} | {lines} | {_f(r['scan_percent'])} | "
-                 f"{_f(r['self_share'], 1, 100)} | {_f(r['own_share'], 1, 100)} | {_f(r['true_coverage'], 1, 100)} | "
+                 f"{_f(r['self_share'], 1, 100)} | {_f(r['area_share'], 1, 100)} | {_f(r['own_share'], 1, 100)} | {_f(r['true_coverage'], 1, 100)} | "
                  f"{_f(r['oracle_coverage'], 1, 100)} | {_f(r['ratio'], 2)} | {_f(r['flame_to_line_max_mm'])} | "
                  f"{_f(r['pose_to_line_max_mm'])} | {tip} | {r['cuts'] if r['cuts'] is not None else '–'} | "
                  f"{r['fragments']} | {_reasons(r['uncut_m_by_reason'])} | {_reasons(r['oracle_uncut_m_by_reason'])} | "

@@ -121,7 +121,7 @@ def note_unseen_paint(summary: CutSummary, drawing: Cloud, surface: Cloud, radiu
             f"the paint runs on past what the scan measured at {len(found)} border{'s' if len(found) > 1 else ''} "
             f"({1e3 * sum(u.border_m for u in found):.0f} mm in all, the longest near "
             f"{', '.join(f'{v:.3f}' for v in top.centre)} m{', at the foot of a wall' if top.wall_m > 0 else ''}): "
-            f"the line may go on there unseen, and the {100 * summary.paint.cut_share:.0f} % is of the paint seen; "
+            f"the line may go on there unseen, and the {100 * summary.told_share:.0f} % is of the paint seen; "
             "look at the piece there")
 
 
@@ -135,15 +135,18 @@ def check_against_paint(summary: CutSummary, path: CutPath, kin: Kinematics, cut
                    viewpoint, cut.normal_radius_m)
     rep = cut_against_paint(path, kin, drawing.xyz, surf, cut, cloud_voxel_m)
     summary.paint = PaintCheck(
+        line_share=None if rep.line_share is None else round(min(max(rep.line_share, 0.0), 1.0), 4),
+        line_on_paint_m=round(rep.line_on_paint_m, 4),
         cut_share=round(min(max(rep.cut_share, 0.0), 1.0), 4), line_length_m=round(rep.line_length_m, 4),
         spray_width_mm=round(2e3 * rep.half_width_m, 1), uncut=[UncutPaintSummary(**u.to_json_dict()) for u in rep.uncut],
         flame_off_paint_max_mm=rep.flame_off_paint_max_mm, flame_off_paint_m=rep.flame_off_paint_m,
         flame_off_centre_max_mm=rep.flame_off_centre_max_mm, flame_off_centre_m=rep.flame_off_centre_m,
         tip_to_surface_min_mm=rep.tip_to_surface_min_mm, tip_to_surface_max_mm=rep.tip_to_surface_max_mm)
-    own, seen = summary.cut_fraction, summary.paint.cut_share
-    if abs(own - seen) > cut.share_disagreement:
-        summary.warnings.append(f"the cut's own line says {100 * own:.0f} % of the drawing will be cut, but the flame "
-                                f"passes over {100 * seen:.0f} % of the paint the scan saw: trust the paint")
+    told, area = summary.told_share, summary.paint.cut_share
+    if abs(told - area) > cut.share_disagreement:
+        summary.warnings.append(f"the line on the paint is {100 * told:.0f} % cut, but the flame passes over "
+                                f"{100 * area:.0f} % of the painted area the scan saw: the two checks disagree, "
+                                "look at the cut against the paint")
     if rep.flame_off_paint_m > 0:
         summary.warnings.append(f"the lit flame leaves the paint for {1e3 * rep.flame_off_paint_m:.0f} mm (up to "
                                 f"{rep.flame_off_paint_max_mm:.0f} mm off it): it would cut unmarked metal")

@@ -95,8 +95,16 @@ class UnseenPaintSummary(Summary):
 
 
 class PaintCheck(Summary):
-    """The cut against what the cell saw (never against its own line): the painted area under the flame's
-    path, computed at every sample of the planned motion with the flame lit."""
+    """The cut against what the cell saw (never against its own line alone), computed at every sample of
+    the planned motion with the flame lit: the line the paint gives where it lies on the band's centre,
+    within the tolerance of the flame (``line_share``, what the operator is told), and the painted area
+    under the flame (``cut_share``), an independent check."""
+
+    line_share: float | None = Field(None, ge=0, le=1, description="share of the line the paint gives (where it lies "
+                                     "on the paint's band centre, plus paint no line follows) within the line "
+                                     "tolerance of the lit flame on the band's centre: the share the operator is told")
+    line_on_paint_m: float | None = Field(None, ge=0, description="that line's length, the paint no line follows "
+                                          "included")
 
     cut_share: float = Field(ge=0, le=1, description="share of the painted area within half the spray width plus "
                                                      "the line tolerance of a runnable cut's flame path")
@@ -116,7 +124,8 @@ class PaintCheck(Summary):
     tip_to_surface_max_mm: float | None = Field(None, ge=0)
     unseen: list[UnseenPaintSummary] = Field(default_factory=list, max_length=100, description="where the paint "
                                              "runs on past what the scan measured, longest first: there "
-                                             "``cut_share`` is a share of less than the whole line")
+                                             "``line_share`` and ``cut_share`` are shares of less than the "
+                                             "whole line")
 
 
 class CutPathSummary(Summary):
@@ -144,14 +153,19 @@ class CutPathSummary(Summary):
 
     @property
     def told_share(self) -> float:
-        """The share of the line the operator is told will be cut: the paint under the flame, as measured
-        (``paint.cut_share``), where the cut was checked against it; else the line's own share."""
-        return self.paint.cut_share if self.paint is not None else self.cut_fraction
+        """The share of the line the operator is told will be cut: the line on the paint under the flame
+        (``paint.line_share``; the painted area's share in records made before it), where the cut was
+        checked against the paint; else the line's own share."""
+        if self.paint is None:
+            return self.cut_fraction
+        return self.paint.line_share if self.paint.line_share is not None else self.paint.cut_share
 
     @property
     def told_length_m(self) -> float:
-        """The line's length the operator is told: as the paint shows it, where measured."""
-        return self.paint.line_length_m if self.paint is not None else self.drawing_length_m
+        """The line's length the operator is told: the line on the paint, where measured."""
+        if self.paint is None:
+            return self.drawing_length_m
+        return self.paint.line_on_paint_m if self.paint.line_on_paint_m is not None else self.paint.line_length_m
 
 
 class ResultSummary(Summary):

@@ -74,8 +74,9 @@ def _cut_phase(job: ScanJob, pcfg, cfg: CellConfig, arm: Arm, run_dir: Path, rec
             print(f"  warning: {msg}", file=sys.stderr, flush=True)
         if summary.paint:
             p = summary.paint
-            print(f"  against the paint: the flame passes over {100 * p.cut_share:.1f} % of the paint (a "
-                  f"{1000 * p.line_length_m:.0f} mm line {p.spray_width_mm:.0f} mm wide), at most "
+            print(f"  against the paint: {100 * summary.told_share:.1f} % of the {1000 * summary.told_length_m:.0f} mm "
+                  f"line on the paint cut, the flame over {100 * p.cut_share:.1f} % of the painted area "
+                  f"({p.spray_width_mm:.0f} mm wide), at most "
                   f"{p.flame_off_paint_max_mm} mm off it, {p.flame_off_centre_max_mm} mm off its centre",
                   file=sys.stderr, flush=True)
         if summary.accuracy:

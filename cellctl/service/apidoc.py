@@ -393,16 +393,20 @@ has a folder, and again once retention has deleted it (`service.retention_days`,
 oldest ended jobs first, never the last one); it never names a folder that does not exist.
 
 - `done`: the scan ended by itself (quality, frontier, max_steps, ...); `result.cut` says what will be cut:
-  `paint.cut_share`, the share of the paint the scan saw that lies under the flame's path (measured at
-  every sample of the planned motion with the flame lit), `paint.uncut` the pieces of paint left, where and
+  `paint.line_share`, the share of the line the paint gives (counted where it lies on the paint band's
+  centre, the paint no line follows counted uncut; its length `paint.line_on_paint_m`) within 5 mm of
+  the flame where the flame runs on the band's centre (measured at every sample of the planned motion
+  with the flame lit): the share the operator is told; `paint.cut_share`, the share of the painted area
+  under the flame's path, an independent check (where the two disagree by more than 3 points a warning
+  says so); `paint.uncut` the pieces of paint left, where and
   why; `paint.unseen` the borders where the paint the scan saw runs on into surface it never measured
   (`centre`, `border_m`, `wall_m`: the height of a measured wall standing over the border, 0 at a rim),
-  longest first: where any is listed, `cut_share` is a share of less than the whole line (the cell cannot
-  say how much less) and a warning says where to look; `cut_fraction`, the share of the drawing's length the cell's own line says it covers (where the two
-  disagree by more than 3 points a warning says so: trust the paint); `feasible_branches` cuts, the `gaps`
+  longest first: where any is listed, both shares are of less than the whole line (the cell cannot
+  say how much less) and a warning says where to look; `cut_fraction`, the share of the drawing's length
+  the cell's own line says it covers; `feasible_branches` cuts, the `gaps`
   left uncut with their reasons, `warnings` in words (its own `error` when no cut could be planned). When
   not all of the paint will be cut, the `done` transition's `note` and the final event's `message` start
-  with `warning:` and give the paint's share (`paint.cut_share`; `cut_fraction` where no paint check was
+  with `warning:` and give the told share (`paint.line_share`; `cut_fraction` where no paint check was
   made) and what is left by reason (e.g. `warning: 94.1 % of the drawing will be cut in 1 cuts; uncut:
   40 mm out of reach`); so do they, even at 100 %, when `paint.unseen` lists a border (`...; the paint
   runs on unseen at 2 borders: the share is of the paint seen`).

@@ -1,4 +1,4 @@
-"""The cut measured against what the cell saw, never against its own skeleton.
+"""The cut measured against what the cell saw, never against its own skeleton alone.
 
 The skeleton's length is the planner's own belief: where it cuts a chord across a sharp tip it still
 says "100 %". The paint (the drawing cloud) and the flame's path are independent of it: the flame
@@ -6,6 +6,12 @@ spot (where the torch axis meets the metal, ``standoff`` ahead of the tip) is co
 sample of the planned joint motion with the flame lit, so a flip of the arm between two poses shows,
 and the paint is cut where it lies within half a spray width (plus the line tolerance) of that path.
 What paint is left is grouped into pieces, each with where it is and why it is not cut.
+
+The share told to the operator (``line_share``) is the line the paint gives, counted only where it
+lies on the paint's band centre, within the tolerance of that flame path, as the truth is judged; the
+paint no line follows counts uncut. The painted area under the flame (``cut_share``) is the second,
+independent check: it over-counts where a face was measured sparsely (seen obliquely, its uncut paint
+looks small), so the two are compared and a disagreement is reported.
 """
 
 from __future__ import annotations
@@ -76,6 +82,8 @@ class PaintReport:
     # spray width where little is cut)
     cut_share: float
     uncut: list[UncutPaint] = field(default_factory=list)
+    line_share: float | None = None  # the measured line on the band's centre within tolerance of a centred flame
+    line_on_paint_m: float = 0.0  # that line's length, plus the paint no line follows
     flame_off_paint_max_mm: float | None = None  # flame spot to the nearest paint, over every lit sample
     flame_off_paint_m: float = 0.0  # flame travel farther than the tolerance from any paint
     flame_off_centre_max_mm: float | None = None  # flame spot to the paint band's centre across its travel
@@ -195,7 +203,7 @@ def _under(paint: np.ndarray, flames: list[FlamePath], half_width_m: float, tole
 
 def paint_report(paint: np.ndarray, paint_normals: np.ndarray, voxel_m: float, half_width_m: float,
                  tolerance_m: float, flames: list[FlamePath], surface: np.ndarray | cKDTree | None = None,
-                 gaps: list | None = None) -> PaintReport:
+                 gaps: list | None = None, line: list[np.ndarray] | None = None) -> PaintReport:
     """The runnable cuts' flame paths (``flames``, one per cut, lit samples only) against the paint.
 
     Args:
@@ -204,6 +212,7 @@ def paint_report(paint: np.ndarray, paint_normals: np.ndarray, voxel_m: float, h
         tolerance_m: how far from the paint's centre line a cut still counts as on it.
         surface: the measured surface (points or their k-d tree), for the tip's clearance.
         gaps: the plan's gaps (``model.Gap``), to say why a piece of paint is left.
+        line: the line's polylines before planning split it (cut and uncut), for ``line_share``.
     """
     paint = np.asarray(paint, dtype=np.float64).reshape(-1, 3)
     if len(paint) == 0:
@@ -213,13 +222,15 @@ def paint_report(paint: np.ndarray, paint_normals: np.ndarray, voxel_m: float, h
     per_metre = max(2.0 * half_width_m, voxel_m)  # painted area per metre of line
     rep = PaintReport(float(half_width_m), total, total / per_metre, 0.0)
     spots = np.vstack([f.spots for f in flames]) if flames else np.zeros((0, 3))
+    centred: list[FlamePath] = []
     if len(spots):
         rep.samples = len(spots)
         paint_tree = cKDTree(paint)
         centre = [off_centre(paint, paint_normals, f.spots, half_width_m, voxel_m, paint_tree) for f in flames]
         beside = [beside_centre(f, c, tolerance_m, half_width_m) for f, c in zip(flames, centre)]
         # paint is cut where the flame passes it on the band's centre, not beside it
-        covered = _under(paint, _centred(flames, beside), half_width_m, tolerance_m, voxel_m)
+        centred = _centred(flames, beside)
+        covered = _under(paint, centred, half_width_m, tolerance_m, voxel_m)
         specks = _specks(paint, ~covered, area, half_width_m, voxel_m)
         rep.cut_share = float(area[covered].sum() / max(total - area[specks].sum(), 1e-12))
         offs = [paint_tree.query(f.spots)[0] for f in flames]  # a few cuts
@@ -245,7 +256,45 @@ def paint_report(paint: np.ndarray, paint_normals: np.ndarray, voxel_m: float, h
     else:
         covered = np.zeros(len(paint), dtype=bool)
     rep.uncut = _uncut(paint[~covered], area[~covered], half_width_m, per_metre, voxel_m, gaps or [])
+    if line is not None:
+        strays = [u for u in rep.uncut if u.reason == NOT_IN_CUT]
+        from planners.metrics import dense_polylines
+
+        polys = dense_polylines([q for q in line if q is not None and len(q)], voxel_m)
+        if strays and len(polys):  # paint no line passes by (the line beside it is uncut already)
+            far = cKDTree(polys).query(np.array([u.centre for u in strays]))[0] > half_width_m + voxel_m
+            strays = [u for u, f in zip(strays, far) if f]
+        missed = sum(u.length_m for u in strays)
+        rep.line_share, rep.line_on_paint_m = line_share(line, paint, paint_normals, centred, half_width_m,
+                                                         tolerance_m, voxel_m, missed)
     return rep
+
+
+def line_share(line: list[np.ndarray], paint: np.ndarray, paint_normals: np.ndarray, centred: list[FlamePath],
+               half_width_m: float, tolerance_m: float, voxel_m: float, missed_m: float = 0.0) -> tuple[float, float]:
+    """(share, length): the line's samples (every voxel along ``line``) on the paint (within 1.5 cells
+    of it) and not beside the band's centre (``off_centre``, where measured), the share of them within
+    ``tolerance_m`` of a ``centred`` flame spot, of their length plus ``missed_m`` of paint no line
+    follows. The truth's own measure (the true centreline within the tolerance of the flame) on what
+    the scan measured: the line alone would count a loop inside the band as line and miss a tip it cut
+    short; the paint's band and the paint left over say where."""
+    from planners.metrics import dense_polylines
+
+    polys = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in line]
+    samples = dense_polylines([p for p in polys if len(p) >= 2], voxel_m)
+    if len(samples) == 0:
+        return 0.0, float(missed_m)
+    tree = cKDTree(paint)
+    on = tree.query(samples)[0] <= 1.5 * voxel_m
+    off = np.concatenate([off_centre(paint, paint_normals, p, half_width_m, voxel_m, tree)
+                          for p in (dense_polylines([q], voxel_m) for q in polys if len(q) >= 2)])
+    on &= ~(off > tolerance_m)  # NaN (not measured): kept
+    length = voxel_m * float(on.sum()) + float(missed_m)
+    spots = [dense_polylines([f.spots], voxel_m) for f in centred if len(f.spots)]
+    if not spots or not on.any():
+        return 0.0, length
+    near = cKDTree(np.vstack(spots)).query(samples[on])[0] <= tolerance_m
+    return float(voxel_m * near.sum() / max(length, 1e-12)), length
 
 
 def _specks(xyz: np.ndarray, uncut: np.ndarray, area: np.ndarray, half_width_m: float, voxel_m: float) -> np.ndarray:
@@ -303,9 +352,10 @@ def cut_against_paint(path, kin, paint: np.ndarray, surface, cfg, voxel_m: float
     from planners.cutpath.geometry import band_half_width
 
     paint = np.asarray(paint, dtype=np.float64).reshape(-1, 3)
+    line = [b.points for b in path.branches] + [g.points for g in path.gaps if g.points is not None]
     if path.spray_width_m:  # measured between the outline's sides: the paint of a sharp tip's other leg is not in it
         return paint_report(paint, surface.normals(paint), voxel_m, 0.5 * path.spray_width_m, cfg.line_tolerance_m,
-                            lit_flames(path, kin, cfg.standoff_m), surface.tree, path.gaps)
+                            lit_flames(path, kin, cfg.standoff_m), surface.tree, path.gaps, line)
     widths = [(b.length_m, band_half_width(b.points, paint, cfg.spacing_m, b.closed, normals=b.normals))
               for b in path.branches if len(b) >= 2]
     widths = [(w, h) for w, h in widths if h > 0]
@@ -317,4 +367,4 @@ def cut_against_paint(path, kin, paint: np.ndarray, surface, cfg, voxel_m: float
     else:
         half = 0.5 * cfg.spray_width_m  # no line to measure across: nothing is cut anyway
     return paint_report(paint, surface.normals(paint), voxel_m, half, cfg.line_tolerance_m,
-                        lit_flames(path, kin, cfg.standoff_m), surface.tree, path.gaps)
+                        lit_flames(path, kin, cfg.standoff_m), surface.tree, path.gaps, line)
