@@ -223,9 +223,9 @@ def paint_report(paint: np.ndarray, paint_normals: np.ndarray, voxel_m: float, h
     rep = PaintReport(float(half_width_m), total, total / per_metre, 0.0)
     spots = np.vstack([f.spots for f in flames]) if flames else np.zeros((0, 3))
     centred: list[FlamePath] = []
+    paint_tree = cKDTree(paint)
     if len(spots):
         rep.samples = len(spots)
-        paint_tree = cKDTree(paint)
         centre = [off_centre(paint, paint_normals, f.spots, half_width_m, voxel_m, paint_tree) for f in flames]
         beside = [beside_centre(f, c, tolerance_m, half_width_m) for f, c in zip(flames, centre)]
         # paint is cut where the flame passes it on the band's centre, not beside it
@@ -257,37 +257,36 @@ def paint_report(paint: np.ndarray, paint_normals: np.ndarray, voxel_m: float, h
         covered = np.zeros(len(paint), dtype=bool)
     rep.uncut = _uncut(paint[~covered], area[~covered], half_width_m, per_metre, voxel_m, gaps or [])
     if line is not None:
-        strays = [u for u in rep.uncut if u.reason == NOT_IN_CUT]
-        from planners.metrics import dense_polylines
-
-        polys = dense_polylines([q for q in line if q is not None and len(q)], voxel_m)
-        if strays and len(polys):  # paint no line passes by (the line beside it is uncut already)
-            far = cKDTree(polys).query(np.array([u.centre for u in strays]))[0] > half_width_m + voxel_m
-            strays = [u for u, f in zip(strays, far) if f]
-        missed = sum(u.length_m for u in strays)
         rep.line_share, rep.line_on_paint_m = line_share(line, paint, paint_normals, centred, half_width_m,
-                                                         tolerance_m, voxel_m, missed)
+                                                         tolerance_m, voxel_m, rep.uncut, paint_tree)
     return rep
 
 
 def line_share(line: list[np.ndarray], paint: np.ndarray, paint_normals: np.ndarray, centred: list[FlamePath],
-               half_width_m: float, tolerance_m: float, voxel_m: float, missed_m: float = 0.0) -> tuple[float, float]:
+               half_width_m: float, tolerance_m: float, voxel_m: float, uncut: list[UncutPaint],
+               tree: cKDTree) -> tuple[float, float]:
     """(share, length): the line's samples (every voxel along ``line``) on the paint (within 1.5 cells
-    of it) and not beside the band's centre (``off_centre``, where measured), the share of them within
-    ``tolerance_m`` of a ``centred`` flame spot, of their length plus ``missed_m`` of paint no line
-    follows. The truth's own measure (the true centreline within the tolerance of the flame) on what
-    the scan measured: the line alone would count a loop inside the band as line and miss a tip it cut
-    short; the paint's band and the paint left over say where."""
+    of it, ``tree`` its k-d tree) and not beside the band's centre (``off_centre``, where measured),
+    the share of them within ``tolerance_m`` of a ``centred`` flame spot, of their length plus the
+    ``uncut`` paint no line follows nor passes by (the line beside it is counted uncut already). The
+    truth's own measure (the true centreline within the tolerance of the flame) on what the scan
+    measured: the line alone would count a loop inside the band as line and miss a tip it cut short;
+    the paint's band and the paint left over say where."""
     from planners.metrics import dense_polylines
 
-    polys = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in line]
-    samples = dense_polylines([p for p in polys if len(p) >= 2], voxel_m)
-    if len(samples) == 0:
+    polys = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in line if p is not None]
+    dense = [dense_polylines([p], voxel_m) for p in polys if len(p)]  # a single point stays itself
+    strays = [u for u in uncut if u.reason == NOT_IN_CUT]
+    if strays and dense:
+        far = cKDTree(np.vstack(dense)).query(np.array([u.centre for u in strays]))[0] > half_width_m + voxel_m
+        strays = [u for u, f in zip(strays, far) if f]
+    missed_m = sum(u.length_m for u in strays)
+    runs = [d for p, d in zip([p for p in polys if len(p)], dense) if len(p) >= 2]
+    if not runs:
         return 0.0, float(missed_m)
-    tree = cKDTree(paint)
+    samples = np.vstack(runs)
     on = tree.query(samples)[0] <= 1.5 * voxel_m
-    off = np.concatenate([off_centre(paint, paint_normals, p, half_width_m, voxel_m, tree)
-                          for p in (dense_polylines([q], voxel_m) for q in polys if len(q) >= 2)])
+    off = np.concatenate([off_centre(paint, paint_normals, r, half_width_m, voxel_m, tree) for r in runs])
     on &= ~(off > tolerance_m)  # NaN (not measured): kept
     length = voxel_m * float(on.sum()) + float(missed_m)
     spots = [dense_polylines([f.spots], voxel_m) for f in centred if len(f.spots)]
