@@ -13,7 +13,7 @@ import trimesh
 
 from sim.scenes import SCENE_NAMES, SceneError, load_scene
 from sim.scenes.paint import closest_points, resample_polyline
-from sim.scenes.views import look_at
+from sim.scenes.views import look_at, segments_blocked
 
 REPO = Path(__file__).resolve().parents[1]
 SHOULDER = np.array([0.0, 0.0, 0.333])
@@ -153,6 +153,17 @@ def test_look_at_frame_convention():
     assert np.allclose(T[:3, 2], [1, 0, 0]) and np.allclose(T[:3, 0], [0, -1, 0]) and np.allclose(T[:3, 1], [0, 0, -1])
     T = look_at([0.5, 0.0, 0.5], [0.5, 0.0, 0.0])  # straight down still gives a proper frame
     assert np.allclose(T[:3, 2], [0, 0, -1]) and np.isclose(np.linalg.det(T[:3, :3]), 1.0)
+
+
+def test_a_sight_line_is_blocked_only_by_metal_between_its_ends():
+    """sim.scenes.views.segments_blocked, which keeps initial views that see their point: a segment
+    through a 0.1 m box is blocked; one passing beside it, one stopping short of it, one starting past
+    it and a zero-length one are not."""
+    box = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+    starts = np.array([[-0.3, 0, 0], [-0.3, 0.08, 0], [-0.3, 0, 0], [0.06, 0, 0], [0.2, 0.2, 0.2]])
+    ends = np.array([[0.3, 0, 0], [0.3, 0.08, 0], [-0.06, 0, 0], [0.3, 0, 0], [0.2, 0.2, 0.2]])
+    assert segments_blocked(box, starts, ends).tolist() == [True, False, False, False, False]
+    assert segments_blocked(box, np.zeros((0, 3)), np.zeros((0, 3))).shape == (0,)
 
 
 def test_load_scene_returns_independent_copies():

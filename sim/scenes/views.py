@@ -37,28 +37,21 @@ def look_at(eye, target, up_hint=(0.0, 0.0, 1.0)) -> np.ndarray:
     return T
 
 
-def segments_blocked(triangles: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """(M,) bool: does segment start->end cross any triangle (Moller-Trumbore, box-culled)?"""
-    lo, hi = triangles.min(axis=1), triangles.max(axis=1)
-    out = np.zeros(len(starts), dtype=bool)
-    for i, (s, e) in enumerate(zip(starts, ends)):  # a handful of candidates, faces vectorized
-        cull = np.all((hi >= np.minimum(s, e)) & (lo <= np.maximum(s, e)), axis=1)
-        tri = triangles[cull]
-        if not len(tri):
-            continue
-        d = e - s
-        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-        p = np.cross(d, e2)
-        det = np.einsum("ij,ij->i", e1, p)
-        ok = np.abs(det) > 1e-12
-        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        tv = s - tri[:, 0]
-        u = np.einsum("ij,ij->i", tv, p) * inv
-        q = np.cross(tv, e1)
-        v = (q @ d) * inv
-        t = np.einsum("ij,ij->i", e2, q) * inv
-        out[i] = np.any(ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (t < 1))
-    return out
+def segments_blocked(mesh, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
+    """(M,) bool: does segment start->end cross the trimesh ``mesh``? One ray per segment through
+    Open3D's BVH (``raycasting_scene``), blocked where it hits before the segment's end."""
+    import open3d as o3d
+
+    starts, ends = np.asarray(starts, dtype=np.float64).reshape(-1, 3), np.asarray(ends, dtype=np.float64).reshape(-1, 3)
+    if len(starts) == 0:
+        return np.zeros(0, dtype=bool)
+    rs, c = raycasting_scene(mesh)
+    d = ends - starts
+    length = np.linalg.norm(d, axis=1)
+    unit = d / np.maximum(length, 1e-12)[:, None]
+    rays = o3d.core.Tensor(np.hstack([starts - c, unit]).astype(np.float32))
+    t = rs.cast_rays(rays)["t_hit"].numpy()
+    return (length > 1e-9) & np.isfinite(t) & (t < length)
 
 
 def _clearance(mesh, points: np.ndarray, spacing: float = 0.005) -> np.ndarray:
@@ -138,7 +131,7 @@ def initial_views(scene: Scene, standoff: float = 0.35, fractions=FRACTIONS, up_
     ok[ok] &= _clearance(mesh, eyes[ok]) >= min_clearance
     sight = targets - eyes
     ends = targets - end_gap * sight / np.linalg.norm(sight, axis=1, keepdims=True)
-    ok[ok] &= ~segments_blocked(mesh.triangles, eyes[ok], ends[ok])
+    ok[ok] &= ~segments_blocked(mesh, eyes[ok], ends[ok])
     poses = [look_at(e, t) for e, t in zip(eyes[ok], targets[ok])]
     if len(poses) < FEW_VIEWS:
         poses += [look_at(e, t) for e, t in _views_round(mesh, line[idx], normals, standoff, min_eye_z, min_clearance,
