@@ -226,3 +226,9 @@ def test_the_told_share_is_the_line_on_the_band_centre_under_the_flame_and_a_loo
     assert rep.line_share >= 0.97, rep.line_share  # the loop's stretch 8 mm beside the centre is no line
     none = paint_report(paint, normals, VOXEL, HALF, 0.005, [], paint, line=[line])
     assert none.line_share == 0.0
+    # one uncut stretch listed twice (the gaps of two branches over the same paint, 1 mm apart) is one
+    twice = paint_report(paint, normals, VOXEL, HALF, 0.005, [_flame(_line(line[0], [0.15, 0.0, 0.0]))], paint,
+                         line=[np.array([[0.0, 0.0, 0.0], [0.15, 0.0, 0.0]]), np.array([[0.15, 0.0, 0.0], [0.3, 0.0, 0.0]]),
+                               np.array([[0.15, 0.001, 0.0], [0.3, 0.001, 0.0]])])
+    assert twice.line_share == pytest.approx(half.line_share, abs=0.02)
+    assert twice.line_on_paint_m == pytest.approx(0.3, abs=0.01)

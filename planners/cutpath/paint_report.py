@@ -265,8 +265,8 @@ def paint_report(paint: np.ndarray, paint_normals: np.ndarray, voxel_m: float, h
 def line_share(line: list[np.ndarray], paint: np.ndarray, paint_normals: np.ndarray, centred: list[FlamePath],
                half_width_m: float, tolerance_m: float, voxel_m: float, uncut: list[UncutPaint],
                tree: cKDTree) -> tuple[float, float]:
-    """(share, length): the line's samples (every voxel along ``line``) on the paint (within 1.5 cells
-    of it, ``tree`` its k-d tree) and not beside the band's centre (``off_centre``, where measured),
+    """(share, length): the line's samples (every voxel along ``line``, a place listed twice once) on
+    the paint (within 1.5 cells of it, ``tree`` its k-d tree) and not beside the band's centre (``off_centre``, where measured),
     the share of them within ``tolerance_m`` of a ``centred`` flame spot, of their length plus the
     ``uncut`` paint no line follows nor passes by (the line beside it is counted uncut already). The
     truth's own measure (the true centreline within the tolerance of the flame) on what the scan
@@ -286,6 +286,7 @@ def line_share(line: list[np.ndarray], paint: np.ndarray, paint_normals: np.ndar
         return 0.0, float(missed_m)
     samples = np.vstack(runs)
     on = tree.query(samples)[0] <= 1.5 * voxel_m
+    on &= ~_listed_before(samples, np.repeat(np.arange(len(runs)), [len(r) for r in runs]), 1.5 * voxel_m)
     off = np.concatenate([off_centre(paint, paint_normals, r, half_width_m, voxel_m, tree) for r in runs])
     on &= ~(off > tolerance_m)  # NaN (not measured): kept
     length = voxel_m * float(on.sum()) + float(missed_m)
@@ -294,6 +295,18 @@ def line_share(line: list[np.ndarray], paint: np.ndarray, paint_normals: np.ndar
         return 0.0, length
     near = cKDTree(np.vstack(spots)).query(samples[on])[0] <= tolerance_m
     return float(voxel_m * near.sum() / max(length, 1e-12)), length
+
+
+def _listed_before(samples: np.ndarray, run: np.ndarray, link_m: float) -> np.ndarray:
+    """(N,) bool: samples within ``link_m`` of a sample of an earlier run (``run`` (N,) its index):
+    a stretch of metal the line lists twice (one out-of-reach stretch a gap of two branches, the
+    ends of branches at a junction) is one stretch of line, counted once."""
+    pairs = cKDTree(samples).query_pairs(link_m, output_type="ndarray")
+    pairs = pairs[run[pairs[:, 0]] != run[pairs[:, 1]]]
+    later = np.where(run[pairs[:, 0]] > run[pairs[:, 1]], pairs[:, 0], pairs[:, 1])
+    out = np.zeros(len(samples), dtype=bool)
+    out[later] = True
+    return out
 
 
 def _specks(xyz: np.ndarray, uncut: np.ndarray, area: np.ndarray, half_width_m: float, voxel_m: float) -> np.ndarray:
