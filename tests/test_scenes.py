@@ -13,7 +13,7 @@ import trimesh
 
 from sim.scenes import SCENE_NAMES, SceneError, load_scene
 from sim.scenes.paint import closest_points, resample_polyline
-from sim.scenes.views import look_at, segments_blocked
+from sim.scenes.views import look_at, sight_blocked
 
 REPO = Path(__file__).resolve().parents[1]
 SHOULDER = np.array([0.0, 0.0, 0.333])
@@ -156,14 +156,16 @@ def test_look_at_frame_convention():
 
 
 def test_a_sight_line_is_blocked_only_by_metal_between_its_ends():
-    """sim.scenes.views.segments_blocked, which keeps initial views that see their point: a segment
+    """sim.scenes.views.sight_blocked, which keeps initial views that see their point: a segment
     through a 0.1 m box is blocked; one passing beside it, one stopping short of it, one starting past
     it and a zero-length one are not."""
     box = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
     starts = np.array([[-0.3, 0, 0], [-0.3, 0.08, 0], [-0.3, 0, 0], [0.06, 0, 0], [0.2, 0.2, 0.2]])
     ends = np.array([[0.3, 0, 0], [0.3, 0.08, 0], [-0.06, 0, 0], [0.3, 0, 0], [0.2, 0.2, 0.2]])
-    assert segments_blocked(box, starts, ends).tolist() == [True, False, False, False, False]
-    assert segments_blocked(box, np.zeros((0, 3)), np.zeros((0, 3))).shape == (0,)
+    assert sight_blocked(box, starts, ends).tolist() == [True, False, False, False, False]
+    # stopped 0.56 m short of its end, the line through the box ends 0.21 m before it
+    assert not sight_blocked(box, starts[:1], ends[:1], 0.56)[0]
+    assert sight_blocked(box, np.zeros((0, 3)), np.zeros((0, 3))).shape == (0,)
 
 
 def test_load_scene_returns_independent_copies():

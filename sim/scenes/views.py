@@ -37,21 +37,21 @@ def look_at(eye, target, up_hint=(0.0, 0.0, 1.0)) -> np.ndarray:
     return T
 
 
-def segments_blocked(mesh, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
-    """(M,) bool: does segment start->end cross the trimesh ``mesh``? One ray per segment through
-    Open3D's BVH (``raycasting_scene``), blocked where it hits before the segment's end."""
+def sight_blocked(mesh, eyes: np.ndarray, targets: np.ndarray, short_m: float = 0.0) -> np.ndarray:
+    """(M,) bool: does the sight line eye->target, stopped ``short_m`` before the target (its own
+    face), cross the trimesh ``mesh``? One ray per line through Open3D's BVH (``raycasting_scene``)."""
     import open3d as o3d
 
-    starts, ends = np.asarray(starts, dtype=np.float64).reshape(-1, 3), np.asarray(ends, dtype=np.float64).reshape(-1, 3)
-    if len(starts) == 0:
+    eyes = np.asarray(eyes, dtype=np.float64).reshape(-1, 3)
+    targets = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
+    if len(eyes) == 0:
         return np.zeros(0, dtype=bool)
     rs, c = raycasting_scene(mesh)
-    d = ends - starts
-    length = np.linalg.norm(d, axis=1)
-    unit = d / np.maximum(length, 1e-12)[:, None]
-    rays = o3d.core.Tensor(np.hstack([starts - c, unit]).astype(np.float32))
-    t = rs.cast_rays(rays)["t_hit"].numpy()
-    return (length > 1e-9) & np.isfinite(t) & (t < length)
+    d = targets - eyes
+    dist = np.linalg.norm(d, axis=1)
+    unit = d / np.maximum(dist, 1e-12)[:, None]
+    t = rs.cast_rays(o3d.core.Tensor(np.hstack([eyes - c, unit]).astype(np.float32)))["t_hit"].numpy()
+    return (dist > 1e-9) & np.isfinite(t) & (t < dist - short_m)
 
 
 def _clearance(mesh, points: np.ndarray, spacing: float = 0.005) -> np.ndarray:
@@ -82,8 +82,6 @@ def _views_round(mesh, targets: np.ndarray, normals: np.ndarray, standoff: float
     up (scrap:0:19, a fold opening towards the arm's base: one view, none reachable). Eyes in front of
     the paint's face, above ``min_eye_z``, clear of the piece, with an open sight line (Open3D's ray
     casting); ordered by the angle from the normal tilted up, the nearest ``ROUND_MOST``."""
-    import open3d as o3d
-
     d = _sphere(ROUND_DIRECTIONS)
     d = d[d[:, 2] > 0.05]
     k = np.arange(len(targets))
@@ -91,12 +89,7 @@ def _views_round(mesh, targets: np.ndarray, normals: np.ndarray, standoff: float
     eyes = targets[ti] + standoff * si[:, None] * d[di]
     ok = (np.einsum("ij,ij->i", d[di], normals[ti]) > 0.1) & (eyes[:, 2] >= min_eye_z)
     ok[ok] &= _clearance(mesh, eyes[ok]) >= min_clearance
-    rs, c = raycasting_scene(mesh)
-    sight = targets[ti] - eyes
-    dist = np.linalg.norm(sight, axis=1)
-    rays = np.hstack([eyes - c, sight / dist[:, None]]).astype(np.float32)
-    hit = rs.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-    ok &= ~(hit < dist - end_gap)
+    ok &= ~sight_blocked(mesh, eyes, targets[ti], end_gap)
     up = normals[ti] + np.array([0.0, 0.0, 1.0])
     up /= np.linalg.norm(up, axis=1, keepdims=True)
     order = np.argsort(-np.einsum("ij,ij->i", d[di], up)[ok], kind="stable")[:ROUND_MOST]
@@ -129,9 +122,7 @@ def initial_views(scene: Scene, standoff: float = 0.35, fractions=FRACTIONS, up_
     eyes = targets + standoff * dirs / np.where(norm > 1e-6, norm, 1.0)
     ok &= eyes[:, 2] >= min_eye_z
     ok[ok] &= _clearance(mesh, eyes[ok]) >= min_clearance
-    sight = targets - eyes
-    ends = targets - end_gap * sight / np.linalg.norm(sight, axis=1, keepdims=True)
-    ok[ok] &= ~segments_blocked(mesh, eyes[ok], ends[ok])
+    ok[ok] &= ~sight_blocked(mesh, eyes[ok], targets[ok], end_gap)
     poses = [look_at(e, t) for e, t in zip(eyes[ok], targets[ok])]
     if len(poses) < FEW_VIEWS:
         poses += [look_at(e, t) for e, t in _views_round(mesh, line[idx], normals, standoff, min_eye_z, min_clearance,
