@@ -35,9 +35,10 @@ def sprayed(poly: np.ndarray, half: float = 0.01, cell: float = 0.002, noise: fl
     return surf[d <= half], surf
 
 
-@pytest.mark.parametrize("tip_deg, skeleton_fails", [(30, True), (40, True), (60, False)])
+@pytest.mark.parametrize("tip_deg, skeleton_fails", [(30, True), (40, False), (60, False)])
 def test_a_zigzag_s_sharp_tips_are_cut_not_chorded(tip_deg, skeleton_fails):
-    """Where the arms' paint merges the skeleton cuts across the tips, the outline does not."""
+    """Where the arms' paint merges the skeleton cuts across the tips, the outline does not (and since
+    a turn is rebuilt from its legs, ``tips.py``, the skeleton's chord at 40 degrees neither)."""
     poly = zigzag(tip_deg)
     paint, surf = sprayed(poly)
     out = build_cut_path(paint, surf, CutPathConfig(), viewpoint=EYE)
@@ -47,6 +48,17 @@ def test_a_zigzag_s_sharp_tips_are_cut_not_chorded(tip_deg, skeleton_fails):
     assert a["cut_coverage"] >= 0.97 and a["path_to_line_max_mm"] <= 3.0, a
     if skeleton_fails:  # the skeleton's chords
         assert b["cut_coverage"] < a["cut_coverage"] or b["path_to_line_max_mm"] > 3.0, b
+
+
+@pytest.mark.parametrize("tip_deg", [20, 25])
+def test_a_zigzag_s_sharper_tips_are_cut_within_the_tolerance(tip_deg):
+    """Tips down to 20 degrees, whose legs' paint merges for 50 mm: the line reaches them and keeps
+    within 5 mm of the worker's line (the cut's tolerance)."""
+    poly = zigzag(tip_deg)
+    paint, surf = sprayed(poly)
+    out = build_cut_path(paint, surf, CutPathConfig(), viewpoint=EYE)
+    a = cut_accuracy([poly], [b.points for b in out.branches])
+    assert a["cut_coverage"] >= 0.97 and a["path_to_line_max_mm"] <= 5.0, a
 
 
 def test_the_outline_measures_the_spray_and_moves_onto_the_line():

@@ -19,6 +19,7 @@ from planners.cutpath.ladder import (COLLISION, IK_ITERATIONS, RECONFIGURE, Rung
                                      plan_ladder, reversal_permutation, solve_rungs, tilt_directions)
 from planners.cutpath.nozzle import NozzleCheck
 from planners.cutpath.pieces import paint_parts, short_pieces
+from planners.cutpath.tips import rebuilt_tips
 from planners.cutpath.model import OK, Branch, CutPath, Gap
 from planners.motion.ik_batch import solve_axis_ik_batch
 from planners.motion.kinematics import Kinematics
@@ -105,7 +106,8 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
             smoothing, corner_scale, corner_paint = cfg.outline_smoothing_m, cfg.corner_scale_m, None
         pts = smooth_resample(poly, cfg.spacing_m, smoothing, closed, corner_scale_m=corner_scale,
                               corner_deg=cfg.corner_deg, paint=corner_paint, held=held)
-        pts = center_on_paint(pts, band, cfg.spacing_m, closed, normals=surf.normals(pts), single_band=half is not None)
+        pts = center_on_paint(pts, band, cfg.spacing_m, closed, normals=surf.normals(pts), band_half_m=half)
+        tip_half = half if half is not None else band_half_width(pts, d_xyz, cfg.spacing_m, normals=surf.normals(pts))
         for k, (pts, cut_start, cut_end) in enumerate(on_paint_runs(pts, paint_tree, surf.tree, cfg.spacing_m)):
             start = cut_start or (not closed and g.kinds[a] == END)
             end = cut_end or (not closed and g.kinds[b] == END)
@@ -120,9 +122,11 @@ def build_cut_path(drawing: Cloud | np.ndarray, surface: Cloud | np.ndarray | Su
                         pts, n = pts[keep], n[keep]
                 pts = end_caps(pts, d_xyz, surf.tree, hw, cfg.spacing_m, start=start, end=end, normals=n)
                 pts = center_on_paint(pts, band, cfg.spacing_m, piece_closed, normals=surf.normals(pts),
-                                      single_band=half is not None)
+                                      band_half_m=half)
             kept = held if not (cut_start or cut_end) else [  # the corners on this side of a split
                 h for h in held if np.min(np.linalg.norm(pts - h, axis=1)) < 2.0 * cfg.spacing_m]
+            pts, tips = rebuilt_tips(pts, d_xyz, cfg.spacing_m, tip_half, surf.normals(pts), piece_closed)
+            kept = kept + tips
             pts, normals = pivots(*on_surface(pts, surf, cfg.spacing_m, np.array(kept)), cfg.pivot_step_deg)
             poses = torch_poses(pts, normals, cfg.standoff_m, piece_closed)
             first = label[a] if k == 0 and not cut_start else f"{label[a]}~{k}"
