@@ -3,7 +3,7 @@ where none is left a stub."""
 
 import numpy as np
 
-from planners.cutpath.ladder import _balanced, _split
+from planners.cutpath.ladder import _balanced, _split, _stubs
 
 
 def _ladder(n: int, spans: list[tuple[int, int]]):
@@ -36,3 +36,15 @@ def test_a_stub_between_two_reconfigurations_starts_earlier_where_its_configurat
     # a run after a gap is nobody's hand-over: untouched
     usable, edges = _ladder(16, [(0, 5), (8, 9), (9, 15)])
     assert _balanced(_split(16, usable, edges), usable, edges, s, 0.02) == [(0, 5), (8, 9), (9, 15)]
+
+
+def test_a_stub_between_two_gaps_is_no_cut_but_one_the_torch_hands_over_to_is():
+    """5 mm runs, 20 mm the least cut: between two stretches left uncut (or the branch's ends) it is a
+    pierce for nothing; beside a reconfiguration it cuts its paint (nothing is left uncut between the two
+    runs); one without length never cuts."""
+    s = 0.005 * np.arange(16)
+    assert _stubs([(3, 4), (8, 15)], s, 0.02, 0.005) == [True, False]  # gaps either side
+    assert _stubs([(0, 1), (3, 15)], s, 0.02, 0.005) == [True, False]  # the branch's start, then a gap
+    assert _stubs([(3, 4), (4, 15)], s, 0.02, 0.005) == [False, False]  # hands over to the next
+    assert _stubs([(0, 8), (8, 9), (9, 15)], s, 0.02, 0.005) == [False, False, False]
+    assert _stubs([(0, 8), (8, 8), (8, 15)], s, 0.02, 0.005) == [False, True, False]  # no length at all
