@@ -24,6 +24,10 @@ MIN_TURN_DEG = 45.0
 MERGED_FROM, MERGED_REACH = 1.4, 3.0
 #: legs whose surface normals part by more than this (degrees) lie on two faces: an edge, not a tip
 EDGE_DEG = 30.0
+#: the normal turning by more than this (degrees) between two points of the line one spacing apart is a
+#: crease of the metal (a fold, a flange's edge) the legs' fit would reach over; a pipe or an elbow
+#: curves by a few degrees a spacing, and its legs are laid in the tangent plane
+CREASE_DEG = 15.0
 #: the sharpest tip looked for (degrees): its legs' paint merges for a half width over tan of half of it
 #: (7.6 half widths at 15), the furthest a tip can lie beyond what followed the paint
 SHARPEST_TIP_DEG = 15.0
@@ -92,8 +96,9 @@ def rebuilt_tips(points: np.ndarray, paint: np.ndarray, spacing_m: float, half_m
     """(points, the tips made): each turn of an open stroke by ``MIN_TURN_DEG`` or more (measured
     over ``FAR`` half widths) where another stretch's paint lies beside the line (``_merged``: a
     tip's legs, a crossing's arms; a curve wider than the band has none) and the legs lie on one face
-    (no surface normal (``normals``, (K,3)) along them parts from the turn's by ``EDGE_DEG``: over an
-    edge of the metal the line bends in space, not on the metal), replaced within ``NEAR`` half widths of it by its two legs
+    (their surface ``normals`` (K,3) part by less than ``EDGE_DEG``, and turn by less than
+    ``CREASE_DEG`` from one point to the next along all the fit looks at: over an edge of the metal
+    the line bends in space, not on the metal; a pipe's curve is no edge), replaced within ``NEAR`` half widths of it by its two legs
     carried on straight to where they meet. The legs are fitted between ``NEAR`` and ``FAR`` half
     widths out, or, where the tip they make is so sharp that their paint merges further out than
     that, as far beyond the merge; and laid in the surface's tangent plane at the turn (a pipe curves
@@ -125,9 +130,10 @@ def rebuilt_tips(points: np.ndarray, paint: np.ndarray, spacing_m: float, half_m
             after = _leg(p, s, s[k] + merge, s[k] + merge + (far - near))
             if before is not None and after is not None:
                 (pa, da), (pb, db), start = before, after, merge
-        span = (s >= s[k] - start - (far - near)) & (s <= s[k] + start + (far - near))  # all the fit looked at
+        span = np.flatnonzero((s >= s[k] - start - (far - near)) & (s <= s[k] + start + (far - near)))  # all the fit saw
         na, nb = n[np.argmin(np.abs(s - (s[k] - near)))], n[np.argmin(np.abs(s - (s[k] + near)))]
-        if (n[span] @ n[k]).min() < np.cos(np.radians(EDGE_DEG)):
+        step = np.einsum("ij,ij->i", n[span[:-1]], n[span[1:]])
+        if na @ nb < np.cos(np.radians(EDGE_DEG)) or (len(step) and step.min() < np.cos(np.radians(CREASE_DEG))):
             continue
         # the turn within the surface: legs and meeting point in the tangent plane at the turn
         nk = (na + nb) / np.linalg.norm(na + nb)
