@@ -33,13 +33,18 @@ def test_the_tips_distance_to_the_metal_is_the_exact_one():
     assert np.abs(distance_to_mesh(scene.full_mesh, pts) - exact).max() < 1e-6
 
 
-def test_the_oracle_cuts_a_smooth_pipe_s_line_on_the_line_and_says_what_it_cannot():
+def _oracle(name: str) -> dict:
+    """The cut oracle of scene ``name``, with the cell's own config, arm and park pose."""
     cfg, path = load_cell_config(None)
     pcfg = load_planners_config(path.parent / cfg.planners_config)
-    scene = load_scene("smooth_cylinder")
+    scene = load_scene(name)
     model, _ = twin_arm(scene, cfg.twin)
     park = np.asarray(cfg.twin.home_q)
-    r = oracle_cut(scene, model, park, cfg.motion.collision, pcfg, park_q=park)
+    return oracle_cut(scene, model, park, cfg.motion.collision, pcfg, park_q=park)
+
+
+def test_the_oracle_cuts_a_smooth_pipe_s_line_on_the_line_and_says_what_it_cannot():
+    r = _oracle("smooth_cylinder")
     a = r["accuracy"]
     assert r["cut_coverage"] >= 0.9 and r["cuts"] >= 1, r
     assert a["path_to_line_max_mm"] <= 5.0 and 7.0 <= a["tip_to_metal_min_mm"] <= a["tip_to_metal_max_mm"] <= 13.0, a
@@ -51,12 +56,7 @@ def test_the_oracle_cuts_a_smooth_pipe_s_line_on_the_line_and_says_what_it_canno
 def test_the_lit_flame_stays_on_the_line_where_the_arm_used_to_flip_between_two_poses():
     """sharp_cylinder's collar: the ladder once joined two rungs 1.4 rad apart as a 'pivot' and the flame
     swept 17 mm off the line between two poses (measured over every sample of the planned motion)."""
-    cfg, path = load_cell_config(None)
-    pcfg = load_planners_config(path.parent / cfg.planners_config)
-    scene = load_scene("sharp_cylinder")
-    model, _ = twin_arm(scene, cfg.twin)
-    park = np.asarray(cfg.twin.home_q)
-    r = oracle_cut(scene, model, park, cfg.motion.collision, pcfg, park_q=park)
+    r = _oracle("sharp_cylinder")
     assert r["cut_coverage"] >= 0.97 and r["accuracy"]["path_to_line_max_mm"] <= 5.0, r
 
 
@@ -64,10 +64,5 @@ def test_a_zigzag_s_sharp_tips_are_cut_to_the_tip_and_never_into_the_metal_betwe
     """scrap:0:43, a plate with a zigzag of 25- and 75-degree tips: the line from the paint's outline
     chorded the sharper tip 10 mm short and centring swerved 7 mm into the metal between the legs
     (94 % of the line, the flame 7.0 mm off it); its legs carried on meet at the tip (``tips.py``)."""
-    cfg, path = load_cell_config(None)
-    pcfg = load_planners_config(path.parent / cfg.planners_config)
-    scene = load_scene("scrap:0:43")
-    model, _ = twin_arm(scene, cfg.twin)
-    park = np.asarray(cfg.twin.home_q)
-    r = oracle_cut(scene, model, park, cfg.motion.collision, pcfg, park_q=park)
+    r = _oracle("scrap:0:43")
     assert r["cut_coverage"] >= 0.96 and r["accuracy"]["path_to_line_max_mm"] <= 5.0, r

@@ -268,11 +268,10 @@ def line_share(line: list[np.ndarray], paint: np.ndarray, paint_normals: np.ndar
     """(share, length): the line's samples (every voxel along ``line``, a place listed twice once) on
     the paint (within 1.5 cells of it, ``tree`` its k-d tree) and not beside the band's centre
     (``off_centre``, where measured), the share of them within ``tolerance_m`` of a ``centred`` flame
-    spot, of their length plus the
-    ``uncut`` paint no line follows nor passes by (the line beside it is counted uncut already). The
-    truth's own measure (the true centreline within the tolerance of the flame) on what the scan
-    measured: the line alone would count a loop inside the band as line and miss a tip it cut short;
-    the paint's band and the paint left over say where."""
+    spot, of their length plus the ``uncut`` paint no line follows nor passes by (the line beside it
+    is counted uncut already). The truth's own measure (the true centreline within the tolerance of
+    the flame) on what the scan measured: the line alone would count a loop inside the band as line
+    and miss a tip it cut short; the paint's band and the paint left over say where."""
     from planners.metrics import dense_polylines
 
     polys = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in line if p is not None]

@@ -44,9 +44,9 @@ def _merged(p: np.ndarray, paint: np.ndarray, spacing_m: float, half_m: float, n
 
 
 def _leg(p: np.ndarray, s: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray] | None:
-    """(the leg's point at arc length ``lo``-side end nearest the turn, unit direction toward the turn)
-    from the points with arc length between ``lo`` and ``hi`` (lo > hi: the leg after the turn, its
-    direction taken backward)."""
+    """(the fitted leg's point level with its end nearest the turn, its unit direction toward the turn)
+    from the points with arc length between ``lo`` (the end nearest the turn) and ``hi``; lo > hi is
+    the leg after the turn, its direction taken backward."""
     a, b = min(lo, hi), max(lo, hi)
     q = p[(s >= a) & (s <= b)]
     if len(q) < 3 or np.linalg.norm(q[-1] - q[0]) < 0.5 * (b - a):
@@ -60,8 +60,9 @@ def _leg(p: np.ndarray, s: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray
     return c + ((near - c) @ d) * d, d
 
 
-def _meet(a: np.ndarray, da: np.ndarray, b: np.ndarray, db: np.ndarray) -> tuple[float, float, float] | None:
-    """(s, u, gap): the closest points a + s da and b + u db of two lines; None when parallel."""
+def _meet(a: np.ndarray, da: np.ndarray, b: np.ndarray, db: np.ndarray) -> tuple[float, float] | None:
+    """(s, u): the closest points a + s da and b + u db of two lines (unit directions); None when
+    parallel."""
     w = a - b
     B = da @ db
     den = 1.0 - B * B
@@ -69,7 +70,7 @@ def _meet(a: np.ndarray, da: np.ndarray, b: np.ndarray, db: np.ndarray) -> tuple
         return None
     s = (B * (db @ w) - (da @ w)) / den
     u = ((db @ w) - B * (da @ w)) / den
-    return s, u, float(np.linalg.norm(a + s * da - (b + u * db)))
+    return s, u
 
 
 def _in_cap(c: np.ndarray, toward: np.ndarray, n: np.ndarray, paint: np.ndarray, tree: cKDTree,
@@ -84,10 +85,10 @@ def _in_cap(c: np.ndarray, toward: np.ndarray, n: np.ndarray, paint: np.ndarray,
     v = paint[tree.query_ball_point(c, 3.0 * half_m)] - c
     v = v - np.outer(v @ n, n)
     along = v @ b
-    v = v[np.linalg.norm(v - along[:, None] * b, axis=1) < 0.5 * half_m]
-    if len(v) < 3:
+    along = along[np.linalg.norm(v - along[:, None] * b, axis=1) < 0.5 * half_m]
+    if len(along) < 3:
         return c
-    end = float((v @ b).max())
+    end = float(along.max())
     return c + min(end - half_m, 0.0) * b
 
 
@@ -98,8 +99,8 @@ def rebuilt_tips(points: np.ndarray, paint: np.ndarray, spacing_m: float, half_m
     tip's legs, a crossing's arms; a curve wider than the band has none) and the legs lie on one face
     (their surface ``normals`` (K,3) part by less than ``EDGE_DEG``, and turn by less than
     ``CREASE_DEG`` from one point to the next along all the fit looks at: over an edge of the metal
-    the line bends in space, not on the metal; a pipe's curve is no edge), replaced within ``NEAR`` half widths of it by its two legs
-    carried on straight to where they meet. The legs are fitted between ``NEAR`` and ``FAR`` half
+    the line bends in space, not on the metal; a pipe's curve is no edge), replaced within ``NEAR``
+    half widths of it by its two legs carried on straight to where they meet. The legs are fitted between ``NEAR`` and ``FAR`` half
     widths out, or, where the tip they make is so sharp that their paint merges further out than
     that, as far beyond the merge; and laid in the surface's tangent plane at the turn (a pipe curves
     away from straight legs). They must meet ahead of both, no further on than a
@@ -146,7 +147,7 @@ def rebuilt_tips(points: np.ndarray, paint: np.ndarray, spacing_m: float, half_m
         met = _meet(pa, da, pb, db)
         if met is None:
             continue
-        u, v, _ = met
+        u, v = met
         c = _in_cap(0.5 * (pa + u * da + pb + v * db), da + db, nk, paint, tree, half_m)
         near_paint = paint[tree.query(c, k=min(8, len(paint)))[1]]
         c = c + ((near_paint.mean(axis=0) - c) @ nk) * nk  # back onto the painted surface's level
